@@ -1,0 +1,56 @@
+"""mitsuba-powder: the dry-powder BSDF of Gerardin, Martinetto and Holzschuch (2023) for Mitsuba 3.
+
+Importing this package makes the ``powder`` plugin findable by Mitsuba: it prepends the
+package folder (which holds ``plugins/powder.so``) to Mitsuba's file resolver, so that
+``mi.load_dict({'type': 'powder', ...})`` and ``<bsdf type="powder">`` work in every variant.
+
+It also checks that Dr.Jit's LLVM backend is usable (Debian 12's default libLLVM 15 makes
+it abort the process on the first kernel); see :func:`check_llvm`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mitsuba as mi
+
+from ._llvm import LLVMStatus, check_llvm
+
+__all__ = ["plugin_dir", "plugin_path", "register", "check_llvm", "LLVMStatus", "__version__"]
+__version__ = "0.1.0"
+
+_PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def plugin_dir() -> Path:
+    """Folder to give Mitsuba's file resolver (or ``mitsuba -a``): it contains ``plugins/``."""
+    return _PACKAGE_DIR
+
+
+def plugin_path() -> Path:
+    """Path of the compiled plugin library ``plugins/powder.so``."""
+    return _PACKAGE_DIR / "plugins" / "powder.so"
+
+
+def register() -> None:
+    """Prepend :func:`plugin_dir` to Mitsuba's file resolver of the calling thread.
+
+    Called on import. Call it again in a thread that Mitsuba did not create from the
+    importing thread before loading a scene there.
+
+    Raises:
+        FileNotFoundError: the plugin library is missing (the package was not built).
+    """
+    if not plugin_path().is_file():
+        raise FileNotFoundError(
+            f"mitsuba_powder: the compiled plugin {plugin_path()} is missing; "
+            "reinstall the package with 'pip install .' so that it is built"
+        )
+    resolver = mi.file_resolver()
+    folder = str(_PACKAGE_DIR)
+    if folder not in [str(p) for p in resolver]:
+        resolver.prepend(folder)
+
+
+register()
+check_llvm(on_import=True)

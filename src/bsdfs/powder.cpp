@@ -1,0 +1,827 @@
+#include <mitsuba/core/properties.h>
+#include <mitsuba/core/spectrum.h>
+#include <mitsuba/core/string.h>
+#include <mitsuba/core/frame.h>
+#include <mitsuba/core/warp.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/texture.h>
+
+#include <cmath>
+#include <limits>
+#include <sstream>
+#include <string>
+#include <vector>
+
+NAMESPACE_BEGIN(mitsuba)
+
+/**!
+
+.. _bsdf-powder:
+
+Dry powder (:monosp:`powder`)
+-----------------------------
+
+.. pluginparameters::
+
+ * - amplitude_volume
+   - |float|
+   - Amplitude A_v of the volume terms (Default: 1.0, range [0, inf))
+   - |exposed|, |differentiable|
+
+ * - g
+   - |float|
+   - Henyey-Greenstein anisotropy of a grain (Default: 0.0, range (-1, 1))
+   - |exposed|, |differentiable|
+
+ * - extinction
+   - |float|
+   - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range (0, inf))
+   - |exposed|, |differentiable|
+
+ * - albedo
+   - |spectrum| or |texture|
+   - Single-scattering albedo rho of the grains (required for now, values in [0, 1])
+   - |exposed|, |differentiable|
+
+ * - tau_o
+   - |float|
+   - Extrapolation ratio of the diffusion boundary (Default: 2/3, range [0, inf))
+   - |exposed|, |differentiable|
+
+ * - thickness
+   - |float|
+   - Layer thickness d in micrometres (Default: infinite, range [0, inf])
+   - |exposed|, |differentiable|
+
+ * - amplitude_surface
+   - |float|
+   - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian) (Default: 0.0)
+   - |exposed|, |differentiable|
+
+ * - correlation_length
+   - |float|
+   - Correlation length l_c of the surface in micrometres, Harvey-Shack only (Default: 1.0)
+   - |exposed|, |differentiable|
+
+ * - specular
+   - |string|
+   - Surface model: ``harvey_shack`` (Default) or ``gaussian``
+
+ * - sigma
+   - |float|
+   - Half width of the Gaussian surface lobe in radians, Gaussian only (Default: 0.1,
+     range (0, pi/2])
+   - |exposed|, |differentiable|
+
+ * - lobes
+   - |string|
+   - Comma-separated subset of ``single, multiple, coherent, surface``, or ``all``
+     (Default: ``all``). Terms not listed are never evaluated.
+
+ * - wavelength
+   - |float|
+   - Wavelength in nm at which mono variants evaluate the model (Default: 700)
+
+ * - rgb_wavelengths
+   - |string|
+   - Wavelengths in nm of the R, G, B channels in RGB variants
+     (Default: ``611.3, 549.1, 464.3``)
+
+The dry-powder reflectance model of Gerardin, Martinetto and Holzschuch
+(JOSA A 40(9), 2023), Eq. 23, with the conventions and corrections of the
+project's ``MODEL.md``:
+
+    f = A_v (L1 + L2 + C) / (4 pi) + S
+
+where L1 is single scattering (Henyey-Greenstein), L2 the diffuse multiple
+scattering ladder term, C the coherent back-scattering (cyclical) term and S
+the Harvey-Shack (or Gaussian) surface term. The material is one-sided.
+
+.. tabs::
+
+    .. code-tab:: xml
+
+        <bsdf type="powder">
+            <rgb name="albedo" value="0.9, 0.5, 0.3"/>
+            <float name="extinction" value="2.0"/>
+            <float name="amplitude_surface" value="1e-4"/>
+        </bsdf>
+
+    .. code-tab:: python
+
+        'type': 'powder',
+        'albedo': {'type': 'rgb', 'value': [0.9, 0.5, 0.3]},
+        'extinction': 2.0,
+        'amplitude_surface': 1e-4,
+*/
+template <typename Float, typename Spectrum>
+class Powder final : public BSDF<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(BSDF, m_flags, m_components)
+    MI_IMPORT_TYPES(Texture)
+
+    enum class SpecularModel : uint32_t { HarveyShack = 0, Gaussian = 1 };
+
+    Powder(const Properties &props) : Base(props) {
+        constexpr double Inf = std::numeric_limits<double>::infinity();
+
+        m_av        = read_float(props, "amplitude_volume", 1.0, 0.0, Inf, true, false);
+        m_g         = read_float(props, "g", 0.0, -1.0, 1.0, false, false);
+        m_kappa     = read_float(props, "extinction", 1.0, 0.0, Inf, false, false);
+        m_tau_o     = read_float(props, "tau_o", 2.0 / 3.0, 0.0, Inf, true, false);
+        m_thickness = read_float(props, "thickness", Inf, 0.0, Inf, true, true);
+        m_as        = read_float(props, "amplitude_surface", 0.0, 0.0, Inf, true, false);
+        m_lc        = read_float(props, "correlation_length", 1.0, 0.0, Inf, false, false);
+        m_sigma     = read_float(props, "sigma", 0.1, 0.0, 0.5 * M_PI, false, true);
+
+        std::string specular = props.get<std::string>("specular", "harvey_shack");
+        if (specular == "harvey_shack")
+            m_specular = SpecularModel::HarveyShack;
+        else if (specular == "gaussian")
+            m_specular = SpecularModel::Gaussian;
+        else
+            Throw("powder: property \"specular\" = \"%s\" is not valid; valid "
+                  "values are \"harvey_shack\" and \"gaussian\"", specular);
+
+        parse_lobes(props.get<std::string>("lobes", "all"));
+
+        m_wavelength = (ScalarFloat) read_scalar(props, "wavelength", 700.0, 0.0,
+                                                 Inf, false, false);
+        parse_rgb_wavelengths(
+            props.get<std::string>("rgb_wavelengths", "611.3, 549.1, 464.3"));
+
+        if (!props.has_property("albedo"))
+            Throw("powder: property \"albedo\" is required (a spectrum or texture "
+                  "with values in [0, 1]); the Mie-derived albedo from grain "
+                  "radius and material is not implemented yet");
+        m_albedo = props.get_texture<Texture>("albedo");
+        check_albedo();
+
+        // Components: volume (diffuse), coherent back-scattering and surface (glossy)
+        if (m_single || m_multiple) {
+            m_comp_volume = (uint32_t) m_components.size();
+            m_components.push_back(BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide);
+        }
+        if (m_coherent) {
+            m_comp_coherent = (uint32_t) m_components.size();
+            m_components.push_back(BSDFFlags::GlossyReflection | BSDFFlags::FrontSide);
+        }
+        if (m_surface) {
+            m_comp_surface = (uint32_t) m_components.size();
+            m_components.push_back(BSDFFlags::GlossyReflection | BSDFFlags::FrontSide);
+        }
+        m_flags = 0;
+        for (uint32_t c : m_components)
+            m_flags |= c;
+
+        parameters_changed();
+    }
+
+    void traverse(TraversalCallback *cb) override {
+        cb->put("amplitude_volume", m_av, ParamFlags::Differentiable);
+        cb->put("g", m_g, ParamFlags::Differentiable);
+        cb->put("extinction", m_kappa, ParamFlags::Differentiable);
+        cb->put("albedo", m_albedo, ParamFlags::Differentiable);
+        cb->put("tau_o", m_tau_o, ParamFlags::Differentiable);
+        cb->put("thickness", m_thickness, ParamFlags::Differentiable);
+        cb->put("amplitude_surface", m_as, ParamFlags::Differentiable);
+        if (m_specular == SpecularModel::HarveyShack)
+            cb->put("correlation_length", m_lc, ParamFlags::Differentiable);
+        else
+            cb->put("sigma", m_sigma, ParamFlags::Differentiable);
+    }
+
+    void parameters_changed(const std::vector<std::string> & /*keys*/ = {}) override {
+        constexpr double Inf = std::numeric_limits<double>::infinity();
+        // Parameters edited through mi.traverse() are checked like properties
+        check_range("amplitude_volume", value_of(m_av), 0.0, Inf, true, false);
+        check_range("g", value_of(m_g), -1.0, 1.0, false, false);
+        check_range("extinction", value_of(m_kappa), 0.0, Inf, false, false);
+        check_range("tau_o", value_of(m_tau_o), 0.0, Inf, true, false);
+        check_range("thickness", value_of(m_thickness), 0.0, Inf, true, true);
+        check_range("amplitude_surface", value_of(m_as), 0.0, Inf, true, false);
+        check_range("correlation_length", value_of(m_lc), 0.0, Inf, false, false);
+        check_range("sigma", value_of(m_sigma), 0.0, 0.5 * M_PI, false, true);
+
+        // An infinite layer needs no thickness factor (and 0 * inf would
+        // poison the gradients of the extinction)
+        m_finite_thickness = std::isfinite(value_of(m_thickness));
+
+        // Detached mean albedo, used only to weight the sampling lobes
+        m_rho_mean = dr::detach(m_albedo->mean());
+
+        dr::make_opaque(m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc,
+                        m_sigma, m_rho_mean);
+    }
+
+    // -----------------------------------------------------------------------
+    //  BSDF interface
+    // -----------------------------------------------------------------------
+
+    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx,
+                                             const SurfaceInteraction3f &si,
+                                             Float sample1,
+                                             const Point2f &sample2,
+                                             Mask active) const override {
+        MI_MASKED_FUNCTION(ProfilerPhase::BSDFSample, active);
+
+        Lobes lobes = enabled_lobes(ctx);
+        BSDFSample3f bs = dr::zeros<BSDFSample3f>();
+        Float mu_i = Frame3f::cos_theta(si.wi);
+        active &= mu_i > 0.f;
+
+        if (unlikely(!lobes.any() || dr::none_or<false>(active)))
+            return { bs, 0.f };
+
+        Float lam_mean = mean_wavelength(si);
+        LobeWeights w = lobe_weights(si, lam_mean, lobes);
+
+        Mask pick_coherent = active && (sample1 < w.coherent),
+             pick_surface  = active && !pick_coherent &&
+                             (sample1 < w.coherent + w.surface),
+             pick_diffuse  = active && !pick_coherent && !pick_surface;
+
+        Vector3f wo = warp::square_to_cosine_hemisphere(sample2);
+
+        if (lobes.coherent)
+            dr::masked(wo, pick_coherent) = sample_coherent(si.wi, w.width_coherent, sample2);
+        if (lobes.surface)
+            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2);
+
+        auto [value, pdf] = eval_pdf_impl(lobes, si, wo, lam_mean, w, active);
+
+        bs.wo = wo;
+        bs.pdf = pdf;
+        bs.eta = 1.f;
+        bs.sampled_type = dr::select(pick_diffuse, UInt32(+BSDFFlags::DiffuseReflection),
+                                     UInt32(+BSDFFlags::GlossyReflection));
+        bs.sampled_component = dr::select(
+            pick_diffuse, UInt32(m_comp_volume),
+            dr::select(pick_coherent, UInt32(m_comp_coherent), UInt32(m_comp_surface)));
+
+        Mask valid = active && pdf > 0.f;
+        UnpolarizedSpectrum weight = dr::select(valid, value / dr::select(valid, pdf, 1.f), 0.f);
+        return { bs, depolarizer<Spectrum>(weight) & valid };
+    }
+
+    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                  const Vector3f &wo, Mask active) const override {
+        MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
+        Lobes lobes = enabled_lobes(ctx);
+        if (unlikely(!lobes.any()))
+            return 0.f;
+        active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
+        UnpolarizedSpectrum value =
+            eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
+        return depolarizer<Spectrum>(dr::select(active, value, 0.f));
+    }
+
+    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+              const Vector3f &wo, Mask active) const override {
+        MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
+        Lobes lobes = enabled_lobes(ctx);
+        if (unlikely(!lobes.any()))
+            return 0.f;
+        active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
+        Float lam_mean = mean_wavelength(si);
+        LobeWeights w = lobe_weights(si, lam_mean, lobes);
+        return pdf_impl(lobes, si, wo, w, active);
+    }
+
+    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx,
+                                        const SurfaceInteraction3f &si,
+                                        const Vector3f &wo,
+                                        Mask active) const override {
+        MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
+        Lobes lobes = enabled_lobes(ctx);
+        if (unlikely(!lobes.any()))
+            return { 0.f, 0.f };
+        Float lam_mean = mean_wavelength(si);
+        LobeWeights w = lobe_weights(si, lam_mean, lobes);
+        auto [value, pdf] = eval_pdf_impl(lobes, si, wo, lam_mean, w, active);
+        return { depolarizer<Spectrum>(value), pdf };
+    }
+
+    Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si,
+                                      Mask active) const override {
+        return depolarizer<Spectrum>(m_albedo->eval(si, active));
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << "Powder[" << std::endl
+            << "  amplitude_volume = " << string::indent(m_av) << "," << std::endl
+            << "  g = " << string::indent(m_g) << "," << std::endl
+            << "  extinction = " << string::indent(m_kappa) << " [1/um]," << std::endl
+            << "  albedo = " << string::indent(m_albedo) << "," << std::endl
+            << "  tau_o = " << string::indent(m_tau_o) << "," << std::endl
+            << "  thickness = " << string::indent(m_thickness) << " [um]," << std::endl
+            << "  specular = " << (m_specular == SpecularModel::HarveyShack
+                                       ? "harvey_shack" : "gaussian") << "," << std::endl
+            << "  amplitude_surface = " << string::indent(m_as) << "," << std::endl;
+        if (m_specular == SpecularModel::HarveyShack)
+            oss << "  correlation_length = " << string::indent(m_lc) << " [um]," << std::endl;
+        else
+            oss << "  sigma = " << string::indent(m_sigma) << " [rad]," << std::endl;
+        oss << "  lobes = \"" << lobes_string() << "\"," << std::endl
+            << "  wavelength = " << m_wavelength << " [nm] (mono)," << std::endl
+            << "  rgb_wavelengths = " << m_rgb_wavelengths[0] << ", "
+            << m_rgb_wavelengths[1] << ", " << m_rgb_wavelengths[2] << " [nm] (rgb)" << std::endl
+            << "]";
+        return oss.str();
+    }
+
+    MI_DECLARE_CLASS(Powder)
+
+private:
+    /// Which terms a call evaluates: the `lobes` property and the BSDF context
+    struct Lobes {
+        bool single, multiple, coherent, surface;
+        bool any() const { return single || multiple || coherent || surface; }
+    };
+
+    /// Probabilities of the coherent and surface sampling lobes (the cosine
+    /// lobe gets the rest, at least 0.1) and their widths
+    struct LobeWeights {
+        Float coherent, surface;
+        Float width_coherent; ///< scale of the projected 2D Cauchy lobe
+        Float width_surface;  ///< std. dev. (projected plane or radians)
+    };
+
+    Lobes enabled_lobes(const BSDFContext &ctx) const {
+        bool volume = ctx.is_enabled(BSDFFlags::DiffuseReflection, m_comp_volume);
+        return { m_single && volume, m_multiple && volume,
+                 m_coherent && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_coherent),
+                 m_surface && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_surface) };
+    }
+
+    // ---------------------------------------------------- numerical helpers
+
+    /// 1 - exp(-x) for x >= 0, accurate for small x (Dr.Jit has no expm1)
+    template <typename T> static T one_minus_exp_neg(const T &x) {
+        dr::mask_t<T> small = x < 0.03f;
+        T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
+        T series = xs * (1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
+                        (1.f - xs * .25f * (1.f - xs * .2f))));
+        return dr::select(small, series, 1.f - dr::exp(-xl));
+    }
+
+    /// (1 - exp(-x)) / x for x >= 0, equal to 1 at x = 0
+    template <typename T> static T one_minus_exp_neg_over_x(const T &x) {
+        dr::mask_t<T> small = x < 0.03f;
+        T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
+        T series = 1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
+                   (1.f - xs * .25f * (1.f - xs * .2f)));
+        return dr::select(small, series, (1.f - dr::exp(-xl)) / xl);
+    }
+
+    /// s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
+    template <typename T> T s_func(const T &c) const {
+        return m_tau_o * one_minus_exp_neg_over_x(2.f * c * m_tau_o);
+    }
+
+    // ------------------------------------------------------- wavelengths
+
+    /// Evaluation wavelengths in micrometres, one per channel
+    UnpolarizedSpectrum wavelengths_um(const SurfaceInteraction3f &si) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            return si.wavelengths * 1e-3f;
+        } else if constexpr (is_rgb_v<Spectrum>) {
+            return UnpolarizedSpectrum(m_rgb_wavelengths[0] * 1e-3f,
+                                       m_rgb_wavelengths[1] * 1e-3f,
+                                       m_rgb_wavelengths[2] * 1e-3f);
+        } else {
+            DRJIT_MARK_USED(si);
+            return UnpolarizedSpectrum(m_wavelength * 1e-3f);
+        }
+    }
+
+    /// Mean evaluation wavelength in micrometres (sets the sampling lobe widths)
+    Float mean_wavelength(const SurfaceInteraction3f &si) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            return dr::mean(si.wavelengths) * 1e-3f;
+        } else if constexpr (is_rgb_v<Spectrum>) {
+            DRJIT_MARK_USED(si);
+            return (m_rgb_wavelengths[0] + m_rgb_wavelengths[1] + m_rgb_wavelengths[2]) *
+                   (1e-3f / 3.f);
+        } else {
+            DRJIT_MARK_USED(si);
+            return m_wavelength * 1e-3f;
+        }
+    }
+
+    // ---------------------------------------------------------- the model
+
+    /**
+     * The BRDF (without the cosine factor) of MODEL.md for the enabled lobes.
+     * Directions outside `active` are replaced by the normal so that no
+     * infinity reaches the gradients of masked-out lanes.
+     */
+    UnpolarizedSpectrum eval_brdf(const Lobes &lobes, const SurfaceInteraction3f &si,
+                                  const Vector3f &wo_, const UnpolarizedSpectrum &lam,
+                                  Mask active) const {
+        Vector3f wi = dr::select(active, si.wi, Vector3f(0.f, 0.f, 1.f)),
+                 wo = dr::select(active, wo_, Vector3f(0.f, 0.f, 1.f));
+        Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
+              mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
+              h = mu_prod / mu_sum; // = 1 / (2 v)
+
+        UnpolarizedSpectrum result(0.f);
+
+        if (lobes.single || lobes.multiple || lobes.coherent) {
+            UnpolarizedSpectrum rho = m_albedo->eval(si, active), volume(0.f);
+
+            if (lobes.single) {
+                Float cos_scatter = -dr::dot(wi, wo),
+                      t = 1.f + dr::square(m_g) - 2.f * m_g * cos_scatter,
+                      phase = (1.f - dr::square(m_g)) / (t * dr::sqrt(t));
+                Float factor = phase / mu_sum;
+                if (m_finite_thickness)
+                    factor *= one_minus_exp_neg(m_kappa * m_thickness *
+                                                (dr::rcp(mu_i) + dr::rcp(mu_o)));
+                volume += rho * factor;
+            }
+
+            if (lobes.multiple || lobes.coherent) {
+                UnpolarizedSpectrum rho2_3 = 3.f * dr::square(rho),
+                    c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f),
+                    c0 = dr::sqrt(c0_sq);
+
+                if (lobes.multiple)
+                    volume += rho2_3 * (s_func(c0) + h) /
+                              ((1.f + c0 * mu_i) * (1.f + c0 * mu_o));
+
+                if (lobes.coherent) {
+                    UnpolarizedSpectrum k0_kappa = dr::TwoPi<ScalarFloat> / (lam * m_kappa);
+                    Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(),
+                          q = dr::sqrt(mu_prod);
+                    UnpolarizedSpectrum c = dr::sqrt(c0_sq + dr::square(k0_kappa) *
+                                                     (dx * dx + dy * dy)),
+                        u = k0_kappa * (mu_i - mu_o),
+                        // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
+                        w = c * q + mu_sum / (2.f * q),
+                        denom = dr::square(w) + dr::square(u * q);
+                    volume += rho2_3 * (h + s_func(c)) / denom;
+                }
+            }
+            result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
+        }
+
+        if (lobes.surface) {
+            if (m_specular == SpecularModel::HarveyShack) {
+                Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y();
+                UnpolarizedSpectrum inv_lam2 = dr::rcp(dr::square(lam)),
+                    fs2 = (sx * sx + sy * sy) * inv_lam2;
+                Float lc2 = dr::square(m_lc);
+                result += (m_as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
+                           dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
+                          dr::square(inv_lam2) *
+                          dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
+            } else {
+                Float theta = mirror_angle(wi, wo);
+                result += m_as * dr::InvSqrtTwoPi<ScalarFloat> / m_sigma *
+                          dr::exp(-dr::square(theta) / (2.f * dr::square(m_sigma)));
+            }
+        }
+
+        return dr::select(active, result, 0.f);
+    }
+
+    /// Angle between wo and the mirror direction of wi (stable near 0)
+    static Float mirror_angle(const Vector3f &wi, const Vector3f &wo) {
+        Vector3f r(-wi.x(), -wi.y(), wi.z());
+        return 2.f * dr::atan2(dr::norm(wo - r), dr::norm(wo + r));
+    }
+
+    // ------------------------------------------------------------ sampling
+
+    LobeWeights lobe_weights(const SurfaceInteraction3f &si, Float lam_mean,
+                             const Lobes &lobes) const {
+        Float mu = dr::maximum(Frame3f::cos_theta(si.wi), 1e-4f);
+        Float av = dr::detach(m_av), rho = dr::clip(m_rho_mean, 0.f, 1.f),
+              g = dr::detach(m_g), kappa = dr::detach(m_kappa),
+              tau = dr::detach(m_tau_o), as = dr::detach(m_as);
+
+        // Rough estimates of each term's directional albedo (integral of
+        // f cos over the hemisphere = integral of f over the projected disc)
+        Float c0 = dr::safe_sqrt(3.f * (1.f - rho) * (1.f - rho * g));
+        Float s0 = tau * one_minus_exp_neg_over_x(2.f * c0 * tau);
+        Float e_diffuse = 0.f, e_coherent = 0.f, e_surface = 0.f;
+        if (lobes.single)
+            e_diffuse += av * .25f * rho / (mu + .5f);
+        if (lobes.multiple)
+            e_diffuse += av * .25f * 3.f * dr::square(rho) * (s0 + h_of(mu, .5f)) /
+                         ((1.f + c0 * mu) * (1.f + .5f * c0));
+
+        Float width_c = dr::minimum(
+            .5f * kappa * lam_mean * dr::InvTwoPi<ScalarFloat> * (c0 + dr::rcp(mu)), 1.f);
+        if (lobes.coherent) {
+            Float peak = 3.f * dr::square(rho) * (s0 + .5f * mu) / dr::square(1.f + c0 * mu);
+            e_coherent = av * .25f * peak * dr::square(width_c);
+        }
+
+        Float width_s;
+        if (m_specular == SpecularModel::HarveyShack) {
+            width_s = lam_mean * dr::InvPi<ScalarFloat> * dr::InvSqrtTwo<ScalarFloat> /
+                      dr::detach(m_lc);
+            if (lobes.surface)
+                e_surface = 16.f * dr::square(dr::Pi<ScalarFloat>) * as * dr::square(mu) /
+                            dr::square(lam_mean);
+        } else {
+            width_s = dr::detach(m_sigma);
+            if (lobes.surface)
+                e_surface = as * width_s * dr::SqrtTwoPi<ScalarFloat> * mu;
+        }
+
+        Float total = e_diffuse + e_coherent + e_surface;
+        Mask positive = total > 0.f;
+        Float inv_total = dr::select(positive, dr::rcp(total), 0.f);
+        LobeWeights w;
+        w.coherent = lobes.coherent ? Float(.1f + .7f * e_coherent * inv_total) : Float(0.f);
+        w.surface = lobes.surface
+            ? dr::select(as > 0.f, .1f + .7f * e_surface * inv_total, 0.f) : Float(0.f);
+        w.width_coherent = width_c;
+        w.width_surface = width_s;
+        return w;
+    }
+
+    static Float h_of(Float a, Float b) { return a * b / (a + b); }
+
+    /// A direction whose projection is wi_xy + delta; z < 0 if off the disc
+    static Vector3f from_projected(Float x, Float y) {
+        Float r2 = x * x + y * y;
+        return Vector3f(x, y, dr::select(r2 < 1.f, dr::safe_sqrt(1.f - r2), -1.f));
+    }
+
+    /// Coherent lobe: 2D Cauchy distribution of wo_xy - wi_xy with scale b
+    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u) {
+        Float r = b * dr::sqrt(u.x() * (2.f - u.x())) / (1.f - u.x());
+        auto [s, c] = dr::sincos(dr::TwoPi<ScalarFloat> * u.y());
+        return from_projected(wi.x() + r * c, wi.y() + r * s);
+    }
+
+    static Float pdf_coherent(const Vector3f &wi, const Vector3f &wo, Float b) {
+        Float r2 = dr::square(wo.x() - wi.x()) + dr::square(wo.y() - wi.y()),
+              t = r2 + dr::square(b);
+        return b * dr::InvTwoPi<ScalarFloat> / (t * dr::sqrt(t)) * Frame3f::cos_theta(wo);
+    }
+
+    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u) const {
+        auto [s, c] = dr::sincos(dr::TwoPi<ScalarFloat> * u.y());
+        Float r = width * dr::sqrt(-2.f * dr::log(1.f - u.x()));
+        if (m_specular == SpecularModel::HarveyShack) {
+            // 2D Gaussian of wo_xy + wi_xy in the projected plane
+            return from_projected(-wi.x() + r * c, -wi.y() + r * s);
+        } else {
+            // 2D Gaussian in the tangent plane of the mirror direction
+            // (exponential map), with theta = r
+            Vector3f mirror(-wi.x(), -wi.y(), wi.z());
+            Frame3f frame(mirror);
+            auto [sin_t, cos_t] = dr::sincos(r);
+            Vector3f wo = frame.to_world(Vector3f(sin_t * c, sin_t * s, cos_t));
+            return dr::select(r < MaxGaussianAngle, wo, Vector3f(0.f, 0.f, -1.f));
+        }
+    }
+
+    Float pdf_surface(const Vector3f &wi, const Vector3f &wo, Float width) const {
+        if (m_specular == SpecularModel::HarveyShack) {
+            Float r2 = dr::square(wo.x() + wi.x()) + dr::square(wo.y() + wi.y()),
+                  inv_var = dr::rcp(dr::square(width));
+            return inv_var * dr::InvTwoPi<ScalarFloat> * dr::exp(-.5f * r2 * inv_var) *
+                   Frame3f::cos_theta(wo);
+        } else {
+            Float theta = mirror_angle(wi, wo), inv_var = dr::rcp(dr::square(width));
+            Float jacobian = dr::select(theta < 1e-3f, 1.f + dr::square(theta) * (1.f / 6.f),
+                                        theta / dr::sin(theta));
+            Float pdf = inv_var * dr::InvTwoPi<ScalarFloat> *
+                        dr::exp(-.5f * dr::square(theta) * inv_var) * jacobian;
+            return dr::select(theta < MaxGaussianAngle, pdf, 0.f);
+        }
+    }
+
+    Float pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
+                   const LobeWeights &w, Mask active) const {
+        Float mu_o = Frame3f::cos_theta(wo);
+        Float pdf = (1.f - w.coherent - w.surface) * dr::InvPi<ScalarFloat> * mu_o;
+        if (lobes.coherent)
+            pdf += w.coherent * pdf_coherent(si.wi, wo, w.width_coherent);
+        if (lobes.surface)
+            pdf += w.surface * pdf_surface(si.wi, wo, w.width_surface);
+        return dr::select(active && mu_o > 0.f, pdf, 0.f);
+    }
+
+    std::pair<UnpolarizedSpectrum, Float>
+    eval_pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
+                  Float /*lam_mean*/, const LobeWeights &w, Mask active) const {
+        active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
+        UnpolarizedSpectrum value =
+            eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
+        Float pdf = pdf_impl(lobes, si, wo, w, active);
+        return { dr::select(active, value, 0.f), pdf };
+    }
+
+    // ------------------------------------------------------ input checking
+
+    template <typename T> static double value_of(const T &v) {
+        return (double) dr::slice(v);
+    }
+
+    static void check_range(const char *name, double value, double lo, double hi,
+                            bool lo_closed, bool hi_closed) {
+        bool ok = !std::isnan(value) && (lo_closed ? value >= lo : value > lo) &&
+                  (hi_closed ? value <= hi : value < hi);
+        if (!ok)
+            Throw("powder: property \"%s\" = %g is out of range; valid range is "
+                  "%s%g, %g%s", name, value, lo_closed ? "[" : "(", lo, hi,
+                  hi_closed ? "]" : ")");
+    }
+
+    static double read_scalar(const Properties &props, const char *name, double def,
+                              double lo, double hi, bool lo_closed, bool hi_closed) {
+        double value = props.get<double>(name, def);
+        check_range(name, value, lo, hi, lo_closed, hi_closed);
+        return value;
+    }
+
+    static Float read_float(const Properties &props, const char *name, double def,
+                            double lo, double hi, bool lo_closed, bool hi_closed) {
+        return Float((ScalarFloat) read_scalar(props, name, def, lo, hi, lo_closed, hi_closed));
+    }
+
+    void check_albedo() const {
+        ScalarFloat max_value;
+        try {
+            max_value = m_albedo->max();
+        } catch (const std::exception &) {
+            return; // this texture type cannot report its maximum
+        }
+        if (!(max_value <= 1.f + 1e-5f))
+            Throw("powder: property \"albedo\" has a maximum of %g; a "
+                  "single-scattering albedo must lie in [0, 1]", (double) max_value);
+    }
+
+    void parse_lobes(const std::string &spec) {
+        m_single = m_multiple = m_coherent = m_surface = false;
+        std::vector<std::string> names = tokenize(spec);
+        if (names.empty())
+            Throw("powder: property \"lobes\" = \"%s\" names no lobe; valid names "
+                  "are single, multiple, coherent, surface (or all)", spec);
+        for (const std::string &n : names) {
+            if (n == "all")
+                m_single = m_multiple = m_coherent = m_surface = true;
+            else if (n == "single")
+                m_single = true;
+            else if (n == "multiple")
+                m_multiple = true;
+            else if (n == "coherent")
+                m_coherent = true;
+            else if (n == "surface")
+                m_surface = true;
+            else
+                Throw("powder: property \"lobes\" = \"%s\" contains the unknown lobe "
+                      "\"%s\"; valid names are single, multiple, coherent, surface "
+                      "(or all)", spec, n);
+        }
+    }
+
+    std::string lobes_string() const {
+        std::vector<std::string> names;
+        if (m_single) names.push_back("single");
+        if (m_multiple) names.push_back("multiple");
+        if (m_coherent) names.push_back("coherent");
+        if (m_surface) names.push_back("surface");
+        std::string out;
+        for (size_t i = 0; i < names.size(); ++i)
+            out += (i ? "," : "") + names[i];
+        return out;
+    }
+
+    void parse_rgb_wavelengths(const std::string &spec) {
+        std::vector<std::string> items = tokenize(spec);
+        if (items.size() != 3)
+            Throw("powder: property \"rgb_wavelengths\" = \"%s\" must hold exactly 3 "
+                  "wavelengths in nm (R, G, B), got %zu", spec, items.size());
+        for (size_t i = 0; i < 3; ++i) {
+            char *end = nullptr;
+            double v = std::strtod(items[i].c_str(), &end);
+            if (end == items[i].c_str() || *end != '\0')
+                Throw("powder: property \"rgb_wavelengths\" = \"%s\": \"%s\" is not a "
+                      "number", spec, items[i]);
+            if (!(v > 0.0) || !std::isfinite(v))
+                Throw("powder: property \"rgb_wavelengths\" = \"%s\": wavelength %g is "
+                      "out of range; valid range is (0, inf) nm", spec, v);
+            m_rgb_wavelengths[i] = (ScalarFloat) v;
+        }
+    }
+
+    static std::vector<std::string> tokenize(const std::string &s) {
+        std::vector<std::string> out;
+        std::string cur;
+        for (char ch : s) {
+            if (ch == ',' || ch == ' ' || ch == '\t' || ch == '\n') {
+                if (!cur.empty())
+                    out.push_back(cur);
+                cur.clear();
+            } else {
+                cur += ch;
+            }
+        }
+        if (!cur.empty())
+            out.push_back(cur);
+        return out;
+    }
+
+    static constexpr float MaxGaussianAngle = 3.1f;
+
+private:
+    ref<Texture> m_albedo;
+    Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
+    Float m_rho_mean;
+    SpecularModel m_specular;
+    bool m_single, m_multiple, m_coherent, m_surface;
+    bool m_finite_thickness = false;
+    uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
+    ScalarFloat m_wavelength;
+    ScalarFloat m_rgb_wavelengths[3];
+
+    MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
+                   m_lc, m_sigma, m_rho_mean)
+};
+
+NAMESPACE_END(mitsuba)
+
+// ---------------------------------------------------------------------------
+//  Registration. CMake compiles this file once per Mitsuba variant with
+//  POWDER_VARIANT_INDEX set (so that the 13 variants build in parallel and
+//  incrementally), and once with POWDER_REGISTRY for the plugin entry point.
+// ---------------------------------------------------------------------------
+
+#define POWDER_CAT_(a, b) a##b
+#define POWDER_CAT(a, b) POWDER_CAT_(a, b)
+
+#if defined(POWDER_VARIANT_INDEX)
+NAMESPACE_BEGIN(mitsuba)
+namespace powder_variant {
+    using LLVMF = dr::DiffArray<JitBackend::LLVM, float>;
+    using CUDAF = dr::DiffArray<JitBackend::CUDA, float>;
+#if POWDER_VARIANT_INDEX == 0
+    using F = float; using S = Color<float, 3>;
+#elif POWDER_VARIANT_INDEX == 1
+    using F = float; using S = Spectrum<float, 4>;
+#elif POWDER_VARIANT_INDEX == 2
+    using F = float; using S = MuellerMatrix<Spectrum<float, 4>>;
+#elif POWDER_VARIANT_INDEX == 3
+    using F = LLVMF; using S = Color<LLVMF, 3>;
+#elif POWDER_VARIANT_INDEX == 4
+    using F = LLVMF; using S = Color<LLVMF, 1>;
+#elif POWDER_VARIANT_INDEX == 5
+    using F = LLVMF; using S = MuellerMatrix<Color<LLVMF, 1>>;
+#elif POWDER_VARIANT_INDEX == 6
+    using F = LLVMF; using S = Spectrum<LLVMF, 4>;
+#elif POWDER_VARIANT_INDEX == 7
+    using F = LLVMF; using S = MuellerMatrix<Spectrum<LLVMF, 4>>;
+#elif POWDER_VARIANT_INDEX == 8
+    using F = CUDAF; using S = Color<CUDAF, 3>;
+#elif POWDER_VARIANT_INDEX == 9
+    using F = CUDAF; using S = Color<CUDAF, 1>;
+#elif POWDER_VARIANT_INDEX == 10
+    using F = CUDAF; using S = MuellerMatrix<Color<CUDAF, 1>>;
+#elif POWDER_VARIANT_INDEX == 11
+    using F = CUDAF; using S = Spectrum<CUDAF, 4>;
+#elif POWDER_VARIANT_INDEX == 12
+    using F = CUDAF; using S = MuellerMatrix<Spectrum<CUDAF, 4>>;
+#else
+#error "POWDER_VARIANT_INDEX must lie in 0..12"
+#endif
+    static_assert(detail::variant<F, S>::name != nullptr,
+                  "this variant is not enabled in the installed Mitsuba");
+}
+
+void POWDER_CAT(powder_register_, POWDER_VARIANT_INDEX)(std::string_view name,
+                                                         PluginRegisterFn fn) {
+    using P = Powder<powder_variant::F, powder_variant::S>;
+    fn(name, P::Variant, P::Type,
+       [](void *, const Properties &p) -> ref<Object> { return new P(p); });
+}
+NAMESPACE_END(mitsuba)
+
+#elif defined(POWDER_REGISTRY)
+NAMESPACE_BEGIN(mitsuba)
+#define POWDER_DECLARE(i) void powder_register_##i(std::string_view, PluginRegisterFn);
+POWDER_DECLARE(0) POWDER_DECLARE(1) POWDER_DECLARE(2) POWDER_DECLARE(3)
+POWDER_DECLARE(4) POWDER_DECLARE(5) POWDER_DECLARE(6) POWDER_DECLARE(7)
+POWDER_DECLARE(8) POWDER_DECLARE(9) POWDER_DECLARE(10) POWDER_DECLARE(11)
+POWDER_DECLARE(12)
+NAMESPACE_END(mitsuba)
+
+extern "C" MI_EXPORT void init_plugin(std::string_view name, mitsuba::PluginRegisterFn fn) {
+    using namespace mitsuba;
+    powder_register_0(name, fn);  powder_register_1(name, fn);  powder_register_2(name, fn);
+    powder_register_3(name, fn);  powder_register_4(name, fn);  powder_register_5(name, fn);
+    powder_register_6(name, fn);  powder_register_7(name, fn);  powder_register_8(name, fn);
+    powder_register_9(name, fn);  powder_register_10(name, fn); powder_register_11(name, fn);
+    powder_register_12(name, fn);
+}
+#else
+#error "compile powder.cpp with POWDER_VARIANT_INDEX=<0..12> or POWDER_REGISTRY"
+#endif
