@@ -147,8 +147,17 @@ public:
 
         m_wavelength = (ScalarFloat) read_scalar(props, "wavelength", 700.0, 0.0,
                                                  Inf, false, false);
-        parse_rgb_wavelengths(
-            props.get<std::string>("rgb_wavelengths", "611.3, 549.1, 464.3"));
+        if (props.has_property("rgb_wavelengths") &&
+            props.type("rgb_wavelengths") == Properties::Type::Vector) {
+            // Python list / XML <vector>
+            ScalarVector3d v = props.get<ScalarVector3d>("rgb_wavelengths");
+            std::ostringstream oss;
+            oss << v[0] << ", " << v[1] << ", " << v[2];
+            parse_rgb_wavelengths(oss.str());
+        } else {
+            parse_rgb_wavelengths(
+                props.get<std::string>("rgb_wavelengths", "611.3, 549.1, 464.3"));
+        }
 
         if (!props.has_property("albedo"))
             Throw("powder: property \"albedo\" is required (a spectrum or texture "
@@ -248,7 +257,7 @@ public:
         if (lobes.surface)
             dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2);
 
-        auto [value, pdf] = eval_pdf_impl(lobes, si, wo, lam_mean, w, active);
+        auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
 
         bs.wo = wo;
         bs.pdf = pdf;
@@ -298,7 +307,7 @@ public:
             return { 0.f, 0.f };
         Float lam_mean = mean_wavelength(si);
         LobeWeights w = lobe_weights(si, lam_mean, lobes);
-        auto [value, pdf] = eval_pdf_impl(lobes, si, wo, lam_mean, w, active);
+        auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
         return { depolarizer<Spectrum>(value), pdf };
     }
 
@@ -432,8 +441,15 @@ private:
             UnpolarizedSpectrum rho = m_albedo->eval(si, active), volume(0.f);
 
             if (lobes.single) {
-                Float cos_scatter = -dr::dot(wi, wo),
-                      t = 1.f + dr::square(m_g) - 2.f * m_g * cos_scatter,
+                /* 1 + g^2 - 2 g cos(Theta) with cos(Theta) = -dot(wi, wo),
+                   rewritten with non-negative terms so that it keeps its
+                   precision when |g| -> 1:
+                   g >= 0: (1 - g)^2 + g |wi + wo|^2
+                   g <  0: (1 + g)^2 - g |wi - wo|^2 */
+                Mask g_pos = m_g >= 0.f;
+                Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
+                          dr::abs(m_g) * dr::select(g_pos, dr::squared_norm(wi + wo),
+                                                    dr::squared_norm(wi - wo)),
                       phase = (1.f - dr::square(m_g)) / (t * dr::sqrt(t));
                 Float factor = phase / mu_sum;
                 if (m_finite_thickness)
@@ -612,7 +628,7 @@ private:
 
     std::pair<UnpolarizedSpectrum, Float>
     eval_pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
-                  Float /*lam_mean*/, const LobeWeights &w, Mask active) const {
+                  const LobeWeights &w, Mask active) const {
         active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
         UnpolarizedSpectrum value =
             eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
