@@ -529,8 +529,12 @@ private:
             e_diffuse += av * .25f * 3.f * dr::square(rho) * (s0 + h_of(mu, .5f)) /
                          ((1.f + c0 * mu) * (1.f + .5f * c0));
 
+        // Width of the cone in the projected plane: C falls off where
+        // alpha ~ c0 + v, i.e. |wo_xy - wi_xy| ~ (kappa / k0) (c0 + 1 / mu_i).
+        // Broader cones are left to the cosine lobe (a projected lobe centred
+        // near the rim would lose half its samples off the disc).
         Float width_c = dr::minimum(
-            .5f * kappa * lam_mean * dr::InvTwoPi<ScalarFloat> * (c0 + dr::rcp(mu)), 1.f);
+            .5f * kappa * lam_mean * dr::InvTwoPi<ScalarFloat> * (c0 + dr::rcp(mu)), .25f);
         if (lobes.coherent) {
             Float peak = 3.f * dr::square(rho) * (s0 + .5f * mu) / dr::square(1.f + c0 * mu);
             e_coherent = av * .25f * peak * dr::square(width_c);
