@@ -648,8 +648,12 @@ private:
 
     static void check_range(const char *name, double value, double lo, double hi,
                             bool lo_closed, bool hi_closed) {
-        bool ok = !std::isnan(value) && (lo_closed ? value >= lo : value > lo) &&
-                  (hi_closed ? value <= hi : value < hi);
+        // Closed bounds are compared in single precision: the plugin stores
+        // floats, and so may the caller (e.g. sigma = pi/2 rounded up)
+        float vf = (float) value;
+        bool ok = !std::isnan(value) &&
+                  (lo_closed ? vf >= (float) lo : value > lo) &&
+                  (hi_closed ? vf <= (float) hi : value < hi);
         if (!ok)
             Throw("powder: property \"%s\" = %g is out of range; valid range is "
                   "%s%g, %g%s", name, value, lo_closed ? "[" : "(", lo, hi,
