@@ -1,0 +1,74 @@
+"""Render a scene file that uses the ``powder`` BSDF and write the image."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import mitsuba as mi
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """What :func:`render_scene` produced.
+
+    Attributes:
+        output: path of the written image.
+        width, height: image size in pixels.
+        spp: samples per pixel used (``None`` when the scene's own count was used).
+        variant: Mitsuba variant.
+        seconds: wall-clock time of loading and rendering, in seconds.
+    """
+
+    output: Path
+    width: int
+    height: int
+    spp: int | None
+    variant: str
+    seconds: float
+
+
+def render_scene(
+    scene: str | Path,
+    output: str | Path,
+    variant: str = "scalar_rgb",
+    spp: int | None = None,
+    defines: dict[str, str] | None = None,
+) -> RenderResult:
+    """Render ``scene`` in ``variant`` and write ``output`` (.exr: linear; .png: sRGB 8 bit).
+
+    Args:
+        scene: scene XML file.
+        output: image file to write; its folder is created.
+        variant: Mitsuba variant, e.g. ``scalar_rgb``, ``llvm_ad_rgb``, ``scalar_spectral``.
+        spp: samples per pixel, overriding the scene's sampler.
+        defines: values for the scene's ``<default name=...>`` parameters.
+
+    Raises:
+        FileNotFoundError: the scene file does not exist.
+        ValueError: unknown variant, unsupported output extension or bad ``spp``.
+    """
+    scene = Path(scene)
+    output = Path(output)
+    if not scene.is_file():
+        raise FileNotFoundError(f"scene file {scene} does not exist")
+    if variant not in mi.variants():
+        raise ValueError(f"variant {variant!r} is not available; choose one of {mi.variants()}")
+    if output.suffix.lower() not in (".exr", ".png", ".jpg", ".hdr", ".pfm"):
+        raise ValueError(f"output {output}: extension must be .exr, .png, .jpg, .hdr or .pfm")
+    if spp is not None and spp < 1:
+        raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
+
+    mi.set_variant(variant)
+    from . import register
+
+    register()
+    start = time.perf_counter()
+    loaded = mi.load_file(str(scene), **(defines or {}))
+    image = mi.render(loaded, spp=spp or 0)
+    seconds = time.perf_counter() - start
+    output.parent.mkdir(parents=True, exist_ok=True)
+    mi.util.write_bitmap(str(output), image, write_async=False)
+    height, width = image.shape[0], image.shape[1]
+    return RenderResult(output, width, height, spp, variant, seconds)
