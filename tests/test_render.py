@@ -8,7 +8,6 @@ import mitsuba as mi
 import numpy as np
 import pytest
 from helpers import use_variant
-
 from mitsuba_powder.cli import main
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"

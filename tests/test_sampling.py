@@ -114,9 +114,10 @@ CONFIGS = [
 
 
 @pytest.mark.parametrize("name,props,theta_i,peak", CONFIGS, ids=[c[0] for c in CONFIGS])
-def test_chi2(name, props, theta_i, peak):
+def test_chi2(name, props, theta_i, peak, tmp_path, monkeypatch):
     from mitsuba.chi2 import ChiSquareTest, SphericalDomain
 
+    monkeypatch.chdir(tmp_path)  # a failing test writes chi2_data.py into the cwd
     use_variant(VARIANT)
     wi = direction(theta_i)
     domain = SphericalDomain() if peak is None else ProjectedPeakDomain(wi, peak)
@@ -126,10 +127,11 @@ def test_chi2(name, props, theta_i, peak):
     assert chi2.run(), chi2.messages
 
 
-def test_chi2_detects_a_wrong_pdf():
+def test_chi2_detects_a_wrong_pdf(tmp_path, monkeypatch):
     """The test set-up above can fail: a pdf off by 10 % in the peak lobe is rejected."""
     from mitsuba.chi2 import ChiSquareTest
 
+    monkeypatch.chdir(tmp_path)
     use_variant(VARIANT)
     wi = direction(30.0)
     domain = ProjectedPeakDomain(wi, 1e-3)
