@@ -6,6 +6,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+
 from reference import Params
 
 ALL_VARIANTS = [

@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+
 from helpers import perturb, random_hemisphere, use_variant
 
 VARIANT = "llvm_ad_rgb"
@@ -63,6 +64,22 @@ def scalar_keys(params) -> list[tuple[str, int | None]]:
     return keys
 
 
+def get_scalar(params, key: str, comp: int | None) -> float:
+    v = params[key]
+    return float(v[comp][0]) if comp is not None else float(v[0])
+
+
+def set_scalar(params, key: str, comp: int | None, x: float) -> None:
+    """Set a Float parameter, or one component of a Color3f parameter, and update."""
+    if comp is None:
+        params[key] = mi.Float(x)
+    else:
+        c = [float(params[key][i][0]) for i in range(3)]
+        c[comp] = x
+        params[key] = mi.Color3f(*c)
+    params.update()
+
+
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_gradients_match_finite_differences(case):
     use_variant(VARIANT)
@@ -85,26 +102,13 @@ def test_gradients_match_finite_differences(case):
         params.update()
 
         # central finite difference
-        x0 = params[key]
-        x0 = float(x0[comp][0]) if comp is not None else float(x0[0])
+        x0 = get_scalar(params, key, comp)
         h = 1e-2 * abs(x0)
         vals = []
         for x in (x0 + h, x0 - h):
-            if comp is None:
-                params[key] = mi.Float(x)
-            else:
-                c = [float(params[key][i][0]) for i in range(3)]
-                c[comp] = x
-                params[key] = mi.Color3f(*c)
-            params.update()
+            set_scalar(params, key, comp, x)
             vals.append(loss_value(bsdf, si, wo, weights))
-        if comp is None:
-            params[key] = mi.Float(x0)
-        else:
-            c = [float(params[key][i][0]) for i in range(3)]
-            c[comp] = x0
-            params[key] = mi.Color3f(*c)
-        params.update()
+        set_scalar(params, key, comp, x0)
         fd = (vals[0] - vals[1]) / (2 * h)
         assert abs(fd) > 0, (key, comp)
         assert abs(grad - fd) <= 0.02 * abs(fd), f"{case} {key}[{comp}]: AD {grad}, FD {fd}"

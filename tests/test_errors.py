@@ -6,6 +6,7 @@ import math
 
 import mitsuba as mi
 import pytest
+
 from helpers import use_variant
 
 GOOD = {"type": "powder", "albedo": 0.5}

@@ -7,6 +7,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 import pytest
+
 from helpers import use_variant
 from mitsuba_powder.cli import main
 

@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+
 from helpers import evaluate, random_hemisphere, sample, use_variant
 
 VARIANT = "llvm_ad_rgb"

@@ -8,6 +8,7 @@ import itertools
 import mitsuba as mi
 import numpy as np
 import pytest
+
 from helpers import evaluate, random_hemisphere, sample, use_variant
 
 RHOS = [0.0, 1e-6, 1.0 - 1e-6, 1.0]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from helpers import (
     Albedo,
     channel_wavelengths,

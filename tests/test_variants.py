@@ -5,6 +5,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 import pytest
+
 from helpers import ALL_VARIANTS, Albedo, channel_wavelengths, evaluate, make_bsdf, use_variant
 from reference import Params, brdf
 
