@@ -1,3 +1,4 @@
+#include <mitsuba/core/fresolver.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/core/spectrum.h>
 #include <mitsuba/core/string.h>
@@ -5,6 +6,8 @@
 #include <mitsuba/core/warp.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
+
+#include "powder_optics.h"
 
 #include <cmath>
 #include <limits>
@@ -121,6 +124,9 @@ public:
     MI_IMPORT_TYPES(Texture)
 
     enum class SpecularModel : uint32_t { HarveyShack = 0, Gaussian = 1 };
+    using FloatStorage = DynamicBuffer<Float>;
+    static constexpr int TableSize = 471;          ///< spectral grid: 360..830 nm
+    static constexpr float TableMin = 360.f, TableStep = 1.f;
 
     Powder(const Properties &props) : Base(props) {
         constexpr double Inf = std::numeric_limits<double>::infinity();
@@ -128,6 +134,7 @@ public:
         m_av        = read_float(props, "amplitude_volume", 1.0, 0.0, Inf, true, false);
         m_g         = read_float(props, "g", 0.0, -1.0, 1.0, false, false);
         m_kappa     = read_float(props, "extinction", 1.0, 0.0, Inf, false, false);
+        m_tau_given = props.has_property("tau_o");
         m_tau_o     = read_float(props, "tau_o", 2.0 / 3.0, 0.0, Inf, true, false);
         m_thickness = read_float(props, "thickness", Inf, 0.0, Inf, true, true);
         m_as        = read_float(props, "amplitude_surface", 0.0, 0.0, Inf, true, false);
@@ -159,12 +166,46 @@ public:
                 props.get<std::string>("rgb_wavelengths", "611.3, 549.1, 464.3"));
         }
 
-        if (!props.has_property("albedo"))
-            Throw("powder: property \"albedo\" is required (a spectrum or texture "
-                  "with values in [0, 1]); the Mie-derived albedo from grain "
-                  "radius and material is not implemented yet");
-        m_albedo = props.get_texture<Texture>("albedo");
-        check_albedo();
+        // Grains: radius (and a second population), optical constants
+        m_radius = read_float(props, "radius", 0.017, 0.0, Inf, false, false);
+        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        if (m_two_populations) {
+            if (!props.has_property("radius2") || !props.has_property("fraction2"))
+                Throw("powder: a second grain population needs both \"radius2\" and "
+                      "\"fraction2\"; got only \"%s\"",
+                      props.has_property("radius2") ? "radius2" : "fraction2");
+            m_radius2 = read_float(props, "radius2", 0.1, 0.0, Inf, false, false);
+            m_fraction2 = read_float(props, "fraction2", 0.0, 0.0, 1.0, true, true);
+        } else {
+            m_radius2 = Float(1.f);
+            m_fraction2 = Float(0.f);
+        }
+        m_optics = load_optics(props);
+
+        if (props.has_property("albedo")) {
+            m_albedo = props.get_texture<Texture>("albedo");
+            check_albedo();
+        }
+
+        // Wavelengths (nm) of the grain tables: a 1 nm grid for spectral
+        // variants, the evaluation wavelengths otherwise
+        if constexpr (is_spectral_v<Spectrum>) {
+            for (int i = 0; i < TableSize; ++i)
+                m_table_wavelengths.push_back(TableMin + i * TableStep);
+        } else if constexpr (is_rgb_v<Spectrum>) {
+            m_table_wavelengths.assign(m_rgb_wavelengths, m_rgb_wavelengths + 3);
+        } else {
+            m_table_wavelengths.push_back(m_wavelength);
+        }
+        for (double wl : m_table_wavelengths)
+            m_index.push_back(m_optics.eval(wl * 1e-3)); // throws if outside the table
+
+        if (!m_tau_given) {
+            std::vector<ScalarFloat> tau;
+            for (const auto &m : m_index)
+                tau.push_back((ScalarFloat) powder::tau_o_fresnel(m.real()));
+            m_tau_table = dr::load<FloatStorage>(tau.data(), tau.size());
+        }
 
         // Components: volume (diffuse), coherent back-scattering and surface (glossy)
         if (m_single || m_multiple) {
@@ -190,8 +231,17 @@ public:
         cb->put("amplitude_volume", m_av, ParamFlags::Differentiable);
         cb->put("g", m_g, ParamFlags::Differentiable);
         cb->put("extinction", m_kappa, ParamFlags::Differentiable);
-        cb->put("albedo", m_albedo, ParamFlags::Differentiable);
-        cb->put("tau_o", m_tau_o, ParamFlags::Differentiable);
+        if (m_albedo) {
+            cb->put("albedo", m_albedo, ParamFlags::Differentiable);
+        } else {
+            cb->put("radius", m_radius, ParamFlags::Differentiable);
+            if (m_two_populations) {
+                cb->put("radius2", m_radius2, ParamFlags::Differentiable);
+                cb->put("fraction2", m_fraction2, ParamFlags::Differentiable);
+            }
+        }
+        if (m_tau_given)
+            cb->put("tau_o", m_tau_o, ParamFlags::Differentiable);
         cb->put("thickness", m_thickness, ParamFlags::Differentiable);
         cb->put("amplitude_surface", m_as, ParamFlags::Differentiable);
         if (m_specular == SpecularModel::HarveyShack)
@@ -200,7 +250,7 @@ public:
             cb->put("sigma", m_sigma, ParamFlags::Differentiable);
     }
 
-    void parameters_changed(const std::vector<std::string> & /*keys*/ = {}) override {
+    void parameters_changed(const std::vector<std::string> &keys = {}) override {
         constexpr double Inf = std::numeric_limits<double>::infinity();
         // Parameters edited through mi.traverse() are checked like properties
         check_range("amplitude_volume", value_of(m_av), 0.0, Inf, true, false);
@@ -211,16 +261,29 @@ public:
         check_range("amplitude_surface", value_of(m_as), 0.0, Inf, true, false);
         check_range("correlation_length", value_of(m_lc), 0.0, Inf, false, false);
         check_range("sigma", value_of(m_sigma), 0.0, 0.5 * M_PI, false, true);
+        check_range("radius", value_of(m_radius), 0.0, Inf, false, false);
+        if (m_two_populations) {
+            check_range("radius2", value_of(m_radius2), 0.0, Inf, false, false);
+            check_range("fraction2", value_of(m_fraction2), 0.0, 1.0, true, true);
+        }
 
         // An infinite layer needs no thickness factor (and 0 * inf would
         // poison the gradients of the extinction)
         m_finite_thickness = std::isfinite(value_of(m_thickness));
 
-        // Detached mean albedo, used only to weight the sampling lobes
-        m_rho_mean = dr::detach(m_albedo->mean());
+        bool grains_changed = keys.empty() || string::contains(keys, "radius") ||
+                              string::contains(keys, "radius2") ||
+                              string::contains(keys, "fraction2");
+        if (!m_albedo && grains_changed)
+            update_mie_tables();
+
+        // Detached means, used only to weight the sampling lobes
+        m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
+                              : Float(dr::mean(dr::detach(m_rho_table)));
+        m_tau_mean = m_tau_given ? dr::detach(m_tau_o) : Float(dr::mean(m_tau_table));
 
         dr::make_opaque(m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc,
-                        m_sigma, m_rho_mean);
+                        m_sigma, m_rho_mean, m_tau_mean, m_radius, m_radius2, m_fraction2);
     }
 
     // -----------------------------------------------------------------------
@@ -313,7 +376,32 @@ public:
 
     Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si,
                                       Mask active) const override {
-        return depolarizer<Spectrum>(m_albedo->eval(si, active));
+        return depolarizer<Spectrum>(albedo(si, active));
+    }
+
+    /// Attributes: "albedo" (rho), "tau_o", and with the Mie path "q_ext",
+    /// "q_sca" (first population) and "q_ext2", "q_sca2" (second)
+    Mask has_attribute(const std::string &name, Mask /*active*/) const override {
+        return name == "albedo" || name == "tau_o" ||
+               (!m_albedo && (name == "q_ext" || name == "q_sca")) ||
+               (!m_albedo && m_two_populations && (name == "q_ext2" || name == "q_sca2"));
+    }
+
+    UnpolarizedSpectrum eval_attribute(const std::string &name,
+                                       const SurfaceInteraction3f &si,
+                                       Mask active) const override {
+        if (name == "albedo")
+            return albedo(si, active);
+        if (name == "tau_o")
+            return tau_o(si, active);
+        if (!dr::any_nested(has_attribute(name, active)))
+            Throw("powder: no attribute \"%s\"; available: albedo, tau_o%s", name,
+                  m_albedo ? "" : (m_two_populations ? ", q_ext, q_sca, q_ext2, q_sca2"
+                                                     : ", q_ext, q_sca"));
+        const FloatStorage &table = name == "q_ext" ? m_qext_table
+                                  : name == "q_sca" ? m_qsca_table
+                                  : name == "q_ext2" ? m_qext2_table : m_qsca2_table;
+        return lookup(table, si, active);
     }
 
     std::string to_string() const override {
@@ -322,8 +410,15 @@ public:
             << "  amplitude_volume = " << string::indent(m_av) << "," << std::endl
             << "  g = " << string::indent(m_g) << "," << std::endl
             << "  extinction = " << string::indent(m_kappa) << " [1/um]," << std::endl
-            << "  albedo = " << string::indent(m_albedo) << "," << std::endl
-            << "  tau_o = " << string::indent(m_tau_o) << "," << std::endl
+            << "  albedo = " << (m_albedo ? string::indent(m_albedo)
+                                          : std::string("from Mie theory")) << "," << std::endl
+            << "  radius = " << string::indent(m_radius) << " [um]," << std::endl;
+        if (m_two_populations)
+            oss << "  radius2 = " << string::indent(m_radius2) << " [um]," << std::endl
+                << "  fraction2 = " << string::indent(m_fraction2) << "," << std::endl;
+        oss << "  optical constants = " << m_optics.source << "," << std::endl
+            << "  tau_o = " << (m_tau_given ? string::indent(m_tau_o)
+                                            : std::string("from Fresnel (Re eta)")) << "," << std::endl
             << "  thickness = " << string::indent(m_thickness) << " [um]," << std::endl
             << "  specular = " << (m_specular == SpecularModel::HarveyShack
                                        ? "harvey_shack" : "gaussian") << "," << std::endl
@@ -385,8 +480,8 @@ private:
     }
 
     /// s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
-    template <typename T> T s_func(const T &c) const {
-        return m_tau_o * one_minus_exp_neg_over_x(2.f * c * m_tau_o);
+    template <typename T> static T s_func(const T &c, const T &tau) {
+        return tau * one_minus_exp_neg_over_x(2.f * c * tau);
     }
 
     // ------------------------------------------------------- wavelengths
@@ -419,6 +514,190 @@ private:
         }
     }
 
+    // ------------------------------------------------------------- grains
+
+    /// Single-scattering albedo per channel: the `albedo` texture or the Mie table
+    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        return m_albedo ? m_albedo->eval(si, active) : lookup(m_rho_table, si, active);
+    }
+
+    /// Extrapolation ratio per channel: the `tau_o` property or the Fresnel table
+    UnpolarizedSpectrum tau_o(const SurfaceInteraction3f &si, Mask active) const {
+        return m_tau_given ? UnpolarizedSpectrum(m_tau_o) : lookup(m_tau_table, si, active);
+    }
+
+    /// A grain table at the channel wavelengths: linear interpolation on the
+    /// 1 nm grid (spectral), or one entry per channel (RGB, mono)
+    UnpolarizedSpectrum lookup(const FloatStorage &table, const SurfaceInteraction3f &si,
+                               Mask active) const {
+        UnpolarizedSpectrum out(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum t = dr::clip((si.wavelengths - TableMin) * (1.f / TableStep),
+                                             0.f, (float) (TableSize - 1) - 1e-3f);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                UInt32 i0 = UInt32(dr::floor(t[c]));
+                Float w = t[c] - Float(i0);
+                out[c] = dr::lerp(dr::gather<Float>(table, i0, active),
+                                  dr::gather<Float>(table, i0 + 1u, active), w);
+            }
+        } else {
+            DRJIT_MARK_USED(si);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                out[c] = dr::gather<Float>(table, UInt32((uint32_t) c), active);
+        }
+        return out;
+    }
+
+    /// Optical constants from `eta`/`k` or `material` (name or YAML file)
+    static powder::OpticalTable load_optics(const Properties &props) {
+        bool has_eta = props.has_property("eta"), has_k = props.has_property("k");
+        if (has_eta || has_k) {
+            if (!(has_eta && has_k))
+                Throw("powder: give both \"eta\" and \"k\" (got only \"%s\")",
+                      has_eta ? "eta" : "k");
+            if (props.has_property("material"))
+                Throw("powder: give either \"material\" or \"eta\" and \"k\", not both");
+            auto [wl_e, v_e] = read_spectrum(props, "eta");
+            auto [wl_k, v_k] = read_spectrum(props, "k");
+            for (double v : v_e)
+                check_range("eta", v, 0.0, std::numeric_limits<double>::infinity(), false, false);
+            for (double v : v_k)
+                check_range("k", v, 0.0, std::numeric_limits<double>::infinity(), true, false);
+            return powder::table_from_pairs(wl_e, v_e, wl_k, v_k);
+        }
+        std::string material = props.get<std::string>("material", "hematite");
+        auto resolve = [&](const std::string &name) {
+            fs::path p = file_resolver()->resolve(name);
+            if (!fs::exists(p))
+                Throw("powder: cannot find \"%s\" (material \"%s\"): import "
+                      "mitsuba_powder, or add its folder to the file resolver "
+                      "(mitsuba -a)", name, material);
+            return p.string();
+        };
+        if (material == "hematite") {
+            powder::OpticalTable o = powder::load_refractiveindex_yaml(
+                resolve("data/optical_constants/hematite_Querry-o.yml"));
+            powder::OpticalTable e = powder::load_refractiveindex_yaml(
+                resolve("data/optical_constants/hematite_Querry-e.yml"));
+            return powder::orientation_average(o, e);
+        }
+        if (material == "magnetite") {
+            powder::OpticalTable t = powder::load_refractiveindex_yaml(
+                resolve("data/optical_constants/magnetite_Querry.yml"));
+            t.source = "magnetite (Querry 1985)";
+            return t;
+        }
+        if (string::ends_with(material, ".yml") || string::ends_with(material, ".yaml"))
+            return powder::load_refractiveindex_yaml(resolve(material));
+        Throw("powder: property \"material\" = \"%s\" is not valid; valid values are "
+              "\"hematite\", \"magnetite\" or the path of a refractiveindex.info YAML "
+              "file (.yml)", material);
+    }
+
+    /// (wavelengths in nm, values) of a float or spectrum property; a uniform
+    /// value gets an empty wavelength list spanning everything
+    static std::pair<std::vector<double>, std::vector<double>>
+    read_spectrum(const Properties &props, const char *name) {
+        auto type = props.type(name);
+        if (type == Properties::Type::Float) {
+            double v = props.get<double>(name);
+            return { { 1.0, 1e6 }, { v, v } };
+        }
+        if (type == Properties::Type::Spectrum) {
+            Properties::Spectrum spec = props.get<Properties::Spectrum>(name);
+            if (spec.is_uniform())
+                return { { 1.0, 1e6 }, { spec.values[0], spec.values[0] } };
+            for (size_t i = 1; i < spec.wavelengths.size(); ++i)
+                if (!(spec.wavelengths[i] > spec.wavelengths[i - 1]))
+                    Throw("powder: property \"%s\": wavelengths must increase (%g nm "
+                          "after %g nm)", name, spec.wavelengths[i], spec.wavelengths[i - 1]);
+            return { spec.wavelengths, spec.values };
+        }
+        Throw("powder: property \"%s\" must be a float or a spectrum of "
+              "wavelength:value pairs (nm), e.g. <spectrum name=\"%s\" "
+              "value=\"400:2.5, 700:2.9\"/>", name, name);
+    }
+
+    /// Mie efficiencies, rho = Q_sca / Q_ext (two populations: MODEL.md),
+    /// and rho's first derivatives with respect to the radii and fraction,
+    /// attached to the AD graph as tangents
+    void update_mie_tables() {
+        double r1 = value_of(m_radius), r2 = value_of(m_radius2), f2 = value_of(m_fraction2);
+        size_t n = m_table_wavelengths.size();
+        std::vector<ScalarFloat> rho(n), d_r1(n), d_r2(n), d_f2(n), qe1(n), qs1(n), qe2(n),
+            qs2(n);
+        const double h = 1e-5; // relative step of the central differences (double)
+
+        auto efficiencies = [&](double r, double wl_nm, const std::complex<double> &m,
+                                const char *name) {
+            double x = 2.0 * M_PI * r / (wl_nm * 1e-3);
+            if (!(x >= 1e-3 && x <= 200.0))
+                Throw("powder: property \"%s\" = %g um gives the size parameter "
+                      "2 pi r / lambda = %g at %g nm; valid range is [1e-3, 200] (radius "
+                      "%g-%g um at this wavelength)", name, r, x, wl_nm,
+                      1e-3 * wl_nm * 1e-3 / (2.0 * M_PI), 200.0 * wl_nm * 1e-3 / (2.0 * M_PI));
+            powder::MieEfficiencies q = powder::mie_efficiencies(m, x),
+                qp = powder::mie_efficiencies(m, x * (1.0 + h)),
+                qm = powder::mie_efficiencies(m, x * (1.0 - h));
+            if (!(q.q_ext > 0.0))
+                Throw("powder: grains of index %g + %gi do not interact with light "
+                      "(Q_ext = 0)", m.real(), m.imag());
+            // derivatives with respect to r: dQ/dr = dQ/dx * x / r
+            double s = 1.0 / (2.0 * h * r);
+            return std::array<double, 4>{ q.q_ext, q.q_sca, (qp.q_ext - qm.q_ext) * s,
+                                          (qp.q_sca - qm.q_sca) * s };
+        };
+
+        for (size_t i = 0; i < n; ++i) {
+            double wl = m_table_wavelengths[i];
+            auto a = efficiencies(r1, wl, m_index[i], "radius");
+            double w1 = (1.0 - f2) / r1;
+            double ns = w1 * a[1], ne = w1 * a[0];
+            double dns_r1 = (1.0 - f2) * (a[3] / r1 - a[1] / (r1 * r1)),
+                   dne_r1 = (1.0 - f2) * (a[2] / r1 - a[0] / (r1 * r1));
+            double dns_r2 = 0.0, dne_r2 = 0.0, dns_f = -a[1] / r1, dne_f = -a[0] / r1;
+            qe1[i] = (ScalarFloat) a[0];
+            qs1[i] = (ScalarFloat) a[1];
+            if (m_two_populations) {
+                auto b = efficiencies(r2, wl, m_index[i], "radius2");
+                double w2 = f2 / r2;
+                ns += w2 * b[1];
+                ne += w2 * b[0];
+                dns_r2 = f2 * (b[3] / r2 - b[1] / (r2 * r2));
+                dne_r2 = f2 * (b[2] / r2 - b[0] / (r2 * r2));
+                dns_f += b[1] / r2;
+                dne_f += b[0] / r2;
+                qe2[i] = (ScalarFloat) b[0];
+                qs2[i] = (ScalarFloat) b[1];
+            }
+            double r = ns / ne;
+            rho[i] = (ScalarFloat) r;
+            d_r1[i] = (ScalarFloat) ((dns_r1 - r * dne_r1) / ne);
+            d_r2[i] = (ScalarFloat) ((dns_r2 - r * dne_r2) / ne);
+            d_f2[i] = (ScalarFloat) ((dns_f - r * dne_f) / ne);
+        }
+
+        auto load = [](const std::vector<ScalarFloat> &v) {
+            return dr::load<FloatStorage>(v.data(), v.size());
+        };
+        m_rho_table = load(rho);
+        if constexpr (dr::is_diff_v<Float>) {
+            // value unchanged (the differences are zero), first derivatives exact
+            m_rho_table = m_rho_table + load(d_r1) * (m_radius - dr::detach(m_radius));
+            if (m_two_populations)
+                m_rho_table = m_rho_table +
+                              load(d_r2) * (m_radius2 - dr::detach(m_radius2)) +
+                              load(d_f2) * (m_fraction2 - dr::detach(m_fraction2));
+        }
+        m_qext_table = load(qe1);
+        m_qsca_table = load(qs1);
+        if (m_two_populations) {
+            m_qext2_table = load(qe2);
+            m_qsca2_table = load(qs2);
+        }
+        dr::make_opaque(m_rho_table);
+    }
+
     // ---------------------------------------------------------- the model
 
     /**
@@ -438,7 +717,7 @@ private:
         UnpolarizedSpectrum result(0.f);
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
-            UnpolarizedSpectrum rho = m_albedo->eval(si, active), volume(0.f);
+            UnpolarizedSpectrum rho = albedo(si, active), volume(0.f);
 
             if (lobes.single) {
                 /* 1 + g^2 - 2 g cos(Theta) with cos(Theta) = -dot(wi, wo),
@@ -459,12 +738,13 @@ private:
             }
 
             if (lobes.multiple || lobes.coherent) {
-                UnpolarizedSpectrum rho2_3 = 3.f * dr::square(rho),
+                UnpolarizedSpectrum tau = tau_o(si, active),
+                    rho2_3 = 3.f * dr::square(rho),
                     c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f),
                     c0 = dr::sqrt(c0_sq);
 
                 if (lobes.multiple)
-                    volume += rho2_3 * (s_func(c0) + h) /
+                    volume += rho2_3 * (s_func(c0, tau) + h) /
                               ((1.f + c0 * mu_i) * (1.f + c0 * mu_o));
 
                 if (lobes.coherent) {
@@ -477,7 +757,7 @@ private:
                         // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
                         w = c * q + mu_sum / (2.f * q),
                         denom = dr::square(w) + dr::square(u * q);
-                    volume += rho2_3 * (h + s_func(c)) / denom;
+                    volume += rho2_3 * (h + s_func(c, tau)) / denom;
                 }
             }
             result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
@@ -516,7 +796,7 @@ private:
         Float mu = dr::maximum(Frame3f::cos_theta(si.wi), 1e-4f);
         Float av = dr::detach(m_av), rho = dr::clip(m_rho_mean, 0.f, 1.f),
               g = dr::detach(m_g), kappa = dr::detach(m_kappa),
-              tau = dr::detach(m_tau_o), as = dr::detach(m_as);
+              tau = m_tau_mean, as = dr::detach(m_as);
 
         // Rough estimates of each term's directional albedo (integral of
         // f cos over the hemisphere = integral of f over the projected disc)
@@ -758,9 +1038,16 @@ private:
     static constexpr float MaxGaussianAngle = 3.1f;
 
 private:
-    ref<Texture> m_albedo;
+    ref<Texture> m_albedo;                          ///< null: albedo from Mie theory
     Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
-    Float m_rho_mean;
+    Float m_radius, m_radius2, m_fraction2;
+    Float m_rho_mean, m_tau_mean;
+    bool m_tau_given = false, m_two_populations = false;
+    powder::OpticalTable m_optics;
+    std::vector<double> m_table_wavelengths;       ///< nm
+    std::vector<std::complex<double>> m_index;     ///< n + i k at those wavelengths
+    FloatStorage m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
+        m_qsca2_table;
     SpecularModel m_specular;
     bool m_single, m_multiple, m_coherent, m_surface;
     bool m_finite_thickness = false;
@@ -769,7 +1056,9 @@ private:
     ScalarFloat m_rgb_wavelengths[3];
 
     MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
-                   m_lc, m_sigma, m_rho_mean)
+                   m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_rho_mean, m_tau_mean,
+                   m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
+                   m_qsca2_table)
 };
 
 NAMESPACE_END(mitsuba)
