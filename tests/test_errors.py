@@ -57,10 +57,45 @@ def test_rgb_wavelengths_as_list_is_accepted_and_checked():
         mi.load_dict({**GOOD, "rgb_wavelengths": [600.0, -550.0, 450.0]})
 
 
-def test_albedo_is_required_until_mie_lands():
+GRAIN_CASES = [
+    ({"radius": -0.1}, ['"radius"', "= -0.1", "(0, inf)"]),
+    ({"radius": 0.0}, ['"radius"', "= 0", "(0, inf)"]),
+    ({"radius": 30.0}, ['"radius" = 30', "size parameter", "[1e-3, 200]"]),
+    ({"radius2": 0.5}, ['"radius2"', '"fraction2"', "got only \"radius2\""]),
+    ({"fraction2": 0.5}, ['"radius2"', '"fraction2"', "got only \"fraction2\""]),
+    ({"radius2": 0.5, "fraction2": 1.5}, ['"fraction2"', "= 1.5", "[0, 1]"]),
+    ({"radius2": -1.0, "fraction2": 0.5}, ['"radius2"', "= -1", "(0, inf)"]),
+    ({"material": "chalk"}, ['"material"', '"chalk"', "hematite", "magnetite", ".yml"]),
+    ({"material": "missing.yml"}, ['cannot find "missing.yml"']),
+    ({"eta": 2.5}, ['both "eta" and "k"', 'only "eta"']),
+    ({"eta": -2.5, "k": 0.1}, ['"eta"', "= -2.5", "(0, inf)"]),
+    ({"eta": 2.5, "k": -0.1}, ['"k"', "= -0.1", "[0, inf)"]),
+    ({"eta": 2.5, "k": 0.1, "material": "hematite"}, ['either "material" or "eta"']),
+]
+
+
+@pytest.mark.parametrize("props,fragments", GRAIN_CASES,
+                         ids=[",".join(f"{k}={v}" for k, v in c[0].items()) for c in GRAIN_CASES])
+def test_bad_grain_property_is_rejected(props, fragments):
     use_variant("scalar_rgb")
-    with pytest.raises(RuntimeError, match='"albedo" is required'):
-        mi.load_dict({"type": "powder"})
+    with pytest.raises(RuntimeError) as info:
+        mi.load_dict({"type": "powder", **props})
+    for fragment in fragments:
+        assert fragment in str(info.value), str(info.value)
+
+
+def test_wavelengths_outside_the_optical_constants_are_rejected():
+    use_variant("scalar_spectral")
+    xml = ('<bsdf version="3.0.0" type="powder">'
+           '<spectrum name="eta" value="400:2.5, 700:2.9"/>'
+           '<spectrum name="k" value="400:0.5, 700:0.01"/></bsdf>')
+    with pytest.raises(RuntimeError, match="wavelength 360 nm lies outside the optical "
+                                           "constants of the \"eta\" and \"k\" spectra"):
+        mi.load_string(xml)
+    use_variant("llvm_ad_mono")  # 700 nm is covered
+    assert mi.load_string(xml).class_name() == "Powder"
+    with pytest.raises(RuntimeError, match="wavelength 800 nm lies outside"):
+        mi.load_string(xml.replace("</bsdf>", '<float name="wavelength" value="800"/></bsdf>'))
 
 
 def test_unknown_property_is_rejected():
@@ -71,13 +106,16 @@ def test_unknown_property_is_rejected():
 
 @pytest.mark.parametrize("key,value,fragment", [
     ("g", 1.2, '"g" = 1.2'),
+    ("radius", -0.5, '"radius" = -0.5'),
+    ("radius", 50.0, "size parameter"),
     ("extinction", -1.0, '"extinction" = -1'),
-    ("tau_o", -0.5, '"tau_o" = -0.5'),
+    ("amplitude_volume", -0.5, '"amplitude_volume" = -0.5'),
     ("correlation_length", 0.0, '"correlation_length" = 0'),
 ])
 def test_bad_value_through_traverse_is_rejected(key, value, fragment):
     use_variant("llvm_ad_rgb")
-    params = mi.traverse(mi.load_dict(GOOD))
+    props = dict(GOOD) if key != "radius" else {"type": "powder"}
+    params = mi.traverse(mi.load_dict(props))
     params[key] = mi.Float(value)
     with pytest.raises(RuntimeError) as info:
         params.update()

@@ -631,7 +631,8 @@ private:
         auto efficiencies = [&](double r, double wl_nm, const std::complex<double> &m,
                                 const char *name) {
             double x = 2.0 * M_PI * r / (wl_nm * 1e-3);
-            if (!(x >= 1e-3 && x <= 200.0))
+            // (a relative slack of 1e-6 absorbs the float rounding of r)
+            if (!(x >= 1e-3 * (1.0 - 1e-6) && x <= 200.0 * (1.0 + 1e-6)))
                 Throw("powder: property \"%s\" = %g um gives the size parameter "
                       "2 pi r / lambda = %g at %g nm; valid range is [1e-3, 200] (radius "
                       "%g-%g um at this wavelength)", name, r, x, wl_nm,

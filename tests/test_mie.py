@@ -1,0 +1,304 @@
+"""Colour from the grains: Mie efficiencies against miepython, tau_o from Fresnel, the albedo
+the plugin uses, two grain populations, radius gradients and the optical-constants loader."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import drjit as dr
+import miepython
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from helpers import channel_kind, use_variant
+from mitsuba_powder import _optics
+
+DATA = Path(__file__).resolve().parents[1] / "python" / "mitsuba_powder" / "data" / \
+    "optical_constants"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "optical_constants"
+X_GRID = np.logspace(-3, np.log10(200.0), 45)
+
+
+def read_yaml_nk(path: Path) -> np.ndarray:
+    """Independent reader of a refractiveindex.info table: rows (wavelength um, n, k)."""
+    rows, inside = [], False
+    for line in path.read_text().splitlines():
+        if line.strip().startswith("data:"):
+            inside = True
+            continue
+        if inside:
+            parts = line.split()
+            if len(parts) != 3:
+                break
+            rows.append([float(p) for p in parts])
+    return np.array(rows)
+
+
+def hematite_nk(wl_nm: np.ndarray) -> np.ndarray:
+    """Orientation-averaged hematite index n + ik at wavelengths in nm (test reference)."""
+    o = read_yaml_nk(DATA / "hematite_Querry-o.yml")
+    e = read_yaml_nk(DATA / "hematite_Querry-e.yml")
+    wl_um = np.asarray(wl_nm) * 1e-3
+    # the plugin averages on the o grid then interpolates; do the same
+    grid = o[:, 0][(o[:, 0] >= e[0, 0]) & (o[:, 0] <= e[-1, 0])]
+    n_avg = (2 * np.interp(grid, o[:, 0], o[:, 1]) + np.interp(grid, e[:, 0], e[:, 1])) / 3
+    k_avg = (2 * np.interp(grid, o[:, 0], o[:, 2]) + np.interp(grid, e[:, 0], e[:, 2])) / 3
+    return np.interp(wl_um, grid, n_avg) + 1j * np.interp(wl_um, grid, k_avg)
+
+
+def mie_ref(index: complex, x: float) -> tuple[float, float]:
+    """miepython uses n - ik for absorbing spheres."""
+    qext, qsca = miepython.efficiencies_mx(np.conj(index), x)[:2]
+    return float(qext), float(qsca)
+
+
+def rho_ref(index: complex, radius_um: float, wl_nm: float, radius2=None, fraction2=0.0):
+    x1 = 2 * np.pi * radius_um / (wl_nm * 1e-3)
+    e1, s1 = mie_ref(index, x1)
+    if radius2 is None:
+        return s1 / e1
+    e2, s2 = mie_ref(index, 2 * np.pi * radius2 / (wl_nm * 1e-3))
+    w1, w2 = (1 - fraction2) / radius_um, fraction2 / radius2
+    return (w1 * s1 + w2 * s2) / (w1 * e1 + w2 * e2)
+
+
+INDICES = [1.33 + 0j, 1.5 + 0j, 3.0 + 0.1j, 2.9 + 1.5j]
+
+
+@pytest.mark.parametrize("index", INDICES + ["hematite 400", "hematite 550", "hematite 700"])
+def test_mie_double_precision_matches_miepython(index):
+    if isinstance(index, str):
+        index = complex(hematite_nk(np.array([float(index.split()[1])]))[0])
+    for x in X_GRID:
+        got = _optics.mie_efficiencies(index, float(x))
+        want = mie_ref(index, float(x))
+        np.testing.assert_allclose(got, want, rtol=1e-6, err_msg=f"m={index}, x={x}")
+
+
+@pytest.mark.parametrize("index", INDICES)
+def test_mie_single_precision_values_of_the_plugin(index):
+    """q_ext and q_sca as the plugin stores them (float32), through eval_attribute."""
+    use_variant("llvm_ad_mono")
+    wl = 700.0
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    for x in X_GRID:
+        r = float(x) * wl * 1e-3 / (2 * np.pi)
+        bsdf = mi.load_dict({"type": "powder", "eta": index.real, "k": index.imag,
+                             "radius": r, "wavelength": wl})
+        got = [float(bsdf.eval_attribute(name, si)[0][0]) for name in ("q_ext", "q_sca")]
+        np.testing.assert_allclose(got, mie_ref(index, float(x)), rtol=1e-4,
+                                   err_msg=f"m={index}, x={x}")
+
+
+def test_tau_o_reference_values():
+    """MODEL.md: n = 1 -> 2/3, n = 1.33 -> 1.676, n = 2.0 -> 5.407 (see the next test)."""
+    assert _optics.tau_o_fresnel(1.0) == pytest.approx(2.0 / 3.0, abs=1e-12)
+    assert _optics.tau_o_fresnel(1.33) == pytest.approx(1.676, abs=1e-3)
+    # the accurate integral gives 5.4161 for n = 2: 0.17 % above MODEL.md's 5.407
+    assert _optics.tau_o_fresnel(2.0) == pytest.approx(5.407, rel=2e-3)
+
+
+def tau_o_independent(n: float) -> float:
+    """MODEL.md's tau_o by a different quadrature: trapezoid in theta, 2e6 points."""
+    theta = np.linspace(0.0, np.pi / 2, 2_000_001)
+    s = n * np.sin(theta)
+    ci = np.cos(theta)
+    ct = np.sqrt(np.clip(1 - s * s, 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rs = (n * ci - ct) / (n * ci + ct)
+        rp = (ci - n * ct) / (ci + n * ct)
+    r = np.where(s >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
+    c1 = np.trapezoid(r * ci * np.sin(theta), theta)
+    c2 = np.trapezoid(r * ci**2 * np.sin(theta), theta)
+    rbar = (3 * c2 + 2 * c1) / (3 * c2 - 2 * c1 + 2)
+    return 2 / 3 * (1 + rbar) / (1 - rbar)
+
+
+@pytest.mark.parametrize("n", [1.0, 1.2, 1.33, 1.5, 2.0, 2.5, 2.9, 3.2])
+def test_tau_o_matches_an_independent_integration(n):
+    assert _optics.tau_o_fresnel(n) == pytest.approx(tau_o_independent(n), rel=1e-6)
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "llvm_ad_spectral", "llvm_ad_rgb",
+                                     "scalar_rgb", "llvm_ad_mono"])
+@pytest.mark.parametrize("radius", [0.01, 0.017, 0.1, 0.5, 2.0])
+def test_observable_albedo_is_mie(variant, radius):
+    """lobes="single", g = 0: 4 pi (mu_i + mu_o) f / A_v = rho (hematite, miepython)."""
+    use_variant(variant)
+    kind = channel_kind()
+    if kind == "spectral":
+        lams = np.array([400.0, 455.0, 550.0, 623.0, 700.0, 810.0])
+        chans = lams.reshape(-1, 4) if len(lams) % 4 == 0 else np.array([[400, 455, 550, 623],
+                                                                           [700, 810, 500, 600]])
+    elif kind == "rgb":
+        chans = np.array([[611.3, 549.1, 464.3]])
+    else:
+        chans = np.array([[650.0]])
+    av = 1.3
+    props = {"type": "powder", "radius": radius, "lobes": "single", "amplitude_volume": av,
+             "wavelength": 650.0}
+    bsdf = mi.load_dict(props)
+    wi = mi.Vector3f(0.3, 0.1, float(np.sqrt(1 - 0.1)))
+    wo = mi.Vector3f(-0.5, 0.2, float(np.sqrt(1 - 0.29)))
+    for lam in chans:
+        si = dr.zeros(mi.SurfaceInteraction3f) if not variant.startswith("scalar") \
+            else mi.SurfaceInteraction3f()
+        si.wi = wi
+        if kind == "spectral":
+            si.wavelengths = mi.UnpolarizedSpectrum(*[float(v) for v in lam])
+        value = np.array(bsdf.eval(mi.BSDFContext(), si, wo), dtype=np.float64).ravel()
+        mu_i, mu_o = float(wi.z if np.ndim(wi.z) == 0 else wi.z[0]), float(
+            wo.z if np.ndim(wo.z) == 0 else wo.z[0])
+        rho = 4 * np.pi * (mu_i + mu_o) * value / mu_o / av
+        want = [rho_ref(complex(hematite_nk(np.array([w]))[0]), radius, w) for w in lam]
+        np.testing.assert_allclose(rho, want, rtol=2e-4, err_msg=f"{variant} r={radius} {lam}")
+
+
+def test_two_populations_albedo():
+    use_variant("scalar_spectral")
+    r1, r2, f2 = 0.083, 0.046, 0.4
+    bsdf = mi.load_dict({"type": "powder", "radius": r1, "radius2": r2, "fraction2": f2})
+    si = mi.SurfaceInteraction3f()
+    lams = [420.0, 530.0, 640.0, 770.0]
+    si.wavelengths = mi.UnpolarizedSpectrum(*lams)
+    got = np.array(bsdf.eval_attribute("albedo", si), dtype=np.float64).ravel()
+    want = [rho_ref(complex(hematite_nk(np.array([w]))[0]), r1, w, r2, f2) for w in lams]
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    # efficiencies of each population are observable too
+    q2 = np.array(bsdf.eval_attribute("q_ext2", si), dtype=np.float64).ravel()
+    want2 = [mie_ref(complex(hematite_nk(np.array([w]))[0]), 2 * np.pi * r2 / (w * 1e-3))[0]
+             for w in lams]
+    np.testing.assert_allclose(q2, want2, rtol=1e-4)
+
+
+def test_fresnel_tau_o_is_used_per_wavelength():
+    """With no tau_o property, tau_o(lambda) = Fresnel of Re(eta(lambda)) of hematite."""
+    use_variant("scalar_spectral")
+    bsdf = mi.load_dict({"type": "powder"})
+    si = mi.SurfaceInteraction3f()
+    lams = [400.0, 500.0, 600.0, 700.0]
+    si.wavelengths = mi.UnpolarizedSpectrum(*lams)
+    got = np.array(bsdf.eval_attribute("tau_o", si), dtype=np.float64).ravel()
+    want = [tau_o_independent(hematite_nk(np.array([w]))[0].real) for w in lams]
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    # an explicit tau_o overrides Fresnel and becomes a traversed parameter
+    bsdf = mi.load_dict({"type": "powder", "tau_o": 3.0})
+    assert np.allclose(np.array(bsdf.eval_attribute("tau_o", si)), 3.0)
+    assert "tau_o" in mi.traverse(bsdf).keys()
+
+
+def test_albedo_property_overrides_mie():
+    use_variant("scalar_rgb")
+    bsdf = mi.load_dict({"type": "powder", "albedo": 0.42, "radius": 0.5})
+    assert np.allclose(np.array(bsdf.eval_attribute("albedo", mi.SurfaceInteraction3f())), 0.42)
+    keys = mi.traverse(bsdf).keys()
+    assert "albedo.value" in keys and "radius" not in keys
+
+
+def loss(bsdf, n=500, as_float64=False):
+    rng = np.random.default_rng(4)
+    wi = rng.normal(size=(n, 3))
+    wi[:, 2] = np.abs(wi[:, 2]) + 0.2
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo = wi * np.array([-1.0, -1.0, 1.0])
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(*[wi[:, k].astype(np.float32) for k in range(3)])
+    v = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[wo[:, k].astype(np.float32)
+                                                      for k in range(3)]))
+    if as_float64:  # for finite differences: no float32 rounding in the sum
+        a = np.array(v, dtype=np.float64)
+        return float(np.sum(a[0] + 2 * a[1] + 3 * a[2]))
+    return dr.sum(v[0] + 2 * v[1] + 3 * v[2])
+
+
+@pytest.mark.parametrize("key,value,extra", [
+    ("radius", 0.01, {}), ("radius", 0.1, {}), ("radius", 1.0, {}),
+    ("radius2", 0.3, {"radius": 0.05, "fraction2": 0.3}),
+    ("fraction2", 0.3, {"radius": 0.05, "radius2": 0.3}),
+])
+def test_radius_gradient_matches_finite_differences(key, value, extra):
+    use_variant("llvm_ad_rgb")
+    bsdf = mi.load_dict({"type": "powder", key: value, **extra})
+    params = mi.traverse(bsdf)
+    dr.enable_grad(params[key])
+    params.update()
+    lo = loss(bsdf)
+    dr.backward(lo)
+    grad = float(dr.grad(params[key])[0])
+    dr.disable_grad(params[key])
+    # a small step: near Mie resonances (weakly absorbing hematite in the red) rho(r)
+    # curves so fast that a 1 % central difference is off by a factor of 4
+    h = 1e-3 * value
+    vals = []
+    for x in (value + h, value - h):
+        params[key] = mi.Float(x)
+        params.update()
+        vals.append(loss(bsdf, as_float64=True))
+    fd = (vals[0] - vals[1]) / (2 * h)
+    assert abs(fd) > 0
+    assert abs(grad - fd) <= 0.02 * abs(fd), (grad, fd)
+
+
+# ----------------------------------------------------------------- loader
+
+GOOD_ROWS = "        0.4000 2.5 0.5\n        0.5000 2.6 0.3\n        0.6000 2.7 0.1\n"
+
+
+def yaml(rows: str, kind: str = "tabulated nk") -> str:
+    return f"REFERENCES: test\nDATA:\n  - type: {kind}\n    data: |\n{rows}"
+
+
+@pytest.mark.parametrize("rows,kind,fragments", [
+    (GOOD_ROWS + "        0.6000 2.7 0.1\n", "tabulated nk", ["line 8", "does not increase"]),
+    (GOOD_ROWS + "        0.5500 2.7 0.1\n", "tabulated nk", ["line 8", "does not increase"]),
+    (GOOD_ROWS + "        0.7000 2.7 -0.1\n", "tabulated nk", ["line 8", "k = -0.1"]),
+    (GOOD_ROWS + "        0.7000 0 0.1\n", "tabulated nk", ["line 8", "n = 0"]),
+    (GOOD_ROWS + "        0.7000 2.7\n", "tabulated nk", ["line 8", "three numbers"]),
+    (GOOD_ROWS + "        0.7000 2.7 abc\n", "tabulated nk", ["line 8", "three numbers"]),
+    (GOOD_ROWS + "        0.7000 2.7 nan\n", "tabulated nk", ["line 8", "three numbers"]),
+    (GOOD_ROWS, "formula 2", ['"formula 2" is not supported']),
+    ("", "tabulated nk", ["no \"tabulated nk\" data block"]),
+])
+def test_loader_rejects_malformed_rows(tmp_path, rows, kind, fragments):
+    path = tmp_path / "bad.yml"
+    path.write_text(yaml(rows, kind))
+    with pytest.raises(RuntimeError) as info:
+        _optics.load_optical_constants(str(path))
+    for fragment in fragments:
+        assert fragment in str(info.value), str(info.value)
+    # the plugin uses the same loader (material = path)
+    use_variant("scalar_rgb")
+    with pytest.raises(RuntimeError) as info:
+        mi.load_dict({"type": "powder", "material": str(path)})
+    assert fragments[0] in str(info.value)
+
+
+def test_loader_reads_a_good_file_and_the_plugin_uses_it(tmp_path):
+    path = tmp_path / "good.yml"
+    path.write_text(yaml(GOOD_ROWS))
+    wl, n, k = _optics.load_optical_constants(str(path))
+    assert wl == [0.4, 0.5, 0.6] and n == [2.5, 2.6, 2.7] and k == [0.5, 0.3, 0.1]
+    use_variant("llvm_ad_mono")
+    bsdf = mi.load_dict({"type": "powder", "material": str(path), "wavelength": 450.0,
+                         "radius": 0.1})
+    got = float(bsdf.eval_attribute("albedo", dr.zeros(mi.SurfaceInteraction3f, 1))[0][0])
+    assert got == pytest.approx(rho_ref(2.55 + 0.4j, 0.1, 450.0), rel=1e-4)
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason="the shared data folder is not beside the repo")
+@pytest.mark.parametrize("name,line", [("hematite_Querry-o.yml", 386),
+                                       ("hematite_Querry-e.yml", 188),
+                                       ("magnetite_Querry.yml", 295)])
+def test_original_files_with_known_defects_are_rejected(name, line):
+    with pytest.raises(RuntimeError, match=f"line {line}: wavelength"):
+        _optics.load_optical_constants(str(SHARED / name))
+
+
+@pytest.mark.parametrize("name", ["hematite_Querry-o.yml", "hematite_Querry-e.yml",
+                                  "magnetite_Querry.yml"])
+def test_bundled_files_load_and_match_an_independent_reader(name):
+    wl, n, k = (np.array(v) for v in _optics.load_optical_constants(str(DATA / name)))
+    ref = read_yaml_nk(DATA / name)
+    np.testing.assert_array_equal(np.stack([wl, n, k], 1), ref)
+    assert wl[0] <= 0.36 and wl[-1] >= 0.83
