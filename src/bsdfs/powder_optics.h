@@ -190,8 +190,9 @@ struct MieEfficiencies { double q_ext, q_sca; };
  * complex index m = n + i k (k >= 0 absorbs) and size parameter x = 2 pi r / lambda.
  *
  * Bohren & Huffman's series with n_stop = x + 4 x^(1/3) + 2 terms: the
- * logarithmic derivative D_n(mx) by downward recurrence started 100 orders
- * above max(n_stop, |mx|) (BHMIE's 15 orders leave errors of 1e-4 at |mx| ~ 300),
+ * logarithmic derivative D_n(mx) by downward recurrence started
+ * 16 + 8 |mx|^(1/3) orders above max(n_stop, |mx|) (BHMIE's fixed 15 orders leave
+ * errors of 5e-4 at |mx| ~ 300; 4 |mx|^(1/3) is the least found to reach 1e-7),
  * the Riccati-Bessel functions psi_n(x), chi_n(x) by upward recurrence (stable
  * up to n_stop, and regular at x = k pi, where a ratio form psi_n = psi_{n-1} /
  * (D_n(x) + n / x) breaks down). Agrees with miepython to < 1e-7 relative for x in
@@ -201,7 +202,8 @@ inline MieEfficiencies mie_efficiencies(std::complex<double> m, double x) {
     using C = std::complex<double>;
     int n_stop = (int) (x + 4.0 * std::cbrt(x) + 2.0);
     C mx = m * x;
-    int n_mx = (int) std::max((double) n_stop, std::abs(mx)) + 100;
+    int n_mx = (int) (std::max((double) n_stop, std::abs(mx)) + 16.0 +
+                      8.0 * std::cbrt(std::abs(mx)));
     std::vector<C> d(n_mx + 1, C(0.0));
     for (int n = n_mx; n > 0; --n)
         d[n - 1] = (double) n / mx - 1.0 / (d[n] + (double) n / mx);

@@ -1,0 +1,131 @@
+"""Cost of a radius update (the Mie table) against one optimisation step's BSDF work.
+
+For each variant: the time of `params.update()` after changing `radius` (Mie efficiencies
+over the variant's table: 471 wavelengths in spectral variants, 3 in RGB, 1 in mono; plus the
+radius tangents), against the time of eval + backward over N direction pairs.
+Prints a table, writes benchmarks/results/mie_update.json and .png.
+Run:  python benchmarks/bench_mie_update.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+OUT = Path(__file__).resolve().parent / "results"
+
+
+def timeit(fn, repeat: int) -> float:
+    """Median wall time of fn() in seconds (after one warm-up call). Dr.Jit launches kernels
+    asynchronously: the clock stops after dr.sync_thread()."""
+    fn()
+    dr.sync_thread()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        dr.sync_thread()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:
+    mi.set_variant(variant)
+    import mitsuba_powder
+
+    mitsuba_powder.register()
+    bsdf = mi.load_dict({"type": "powder", "radius": radius})
+    params = mi.traverse(bsdf)
+    rng = np.random.default_rng(0)
+    mu = rng.uniform(0.1, 1, (2, n_dirs))
+    phi = rng.uniform(0, 2 * np.pi, (2, n_dirs))
+    s = np.sqrt(1 - mu**2)
+    si = dr.zeros(mi.SurfaceInteraction3f, n_dirs)
+    si.wi = mi.Vector3f(s[0] * np.cos(phi[0]), s[0] * np.sin(phi[0]), mu[0])
+    if "spectral" in variant:
+        si.wavelengths = mi.UnpolarizedSpectrum(*rng.uniform(360, 830, (4, n_dirs)))
+    wo = mi.Vector3f(s[1] * np.cos(phi[1]), s[1] * np.sin(phi[1]), mu[1])
+    toggle = [radius, radius * 1.01]
+
+    def update():
+        """radius changed, no gradient tracked: the Mie table only"""
+        toggle.reverse()
+        params["radius"] = mi.Float(toggle[0])
+        params.update()
+        dr.eval(params["radius"])
+
+    def update_ad():
+        """radius changed with gradients tracked: Mie table and its radius tangents"""
+        toggle.reverse()
+        params["radius"] = mi.Float(toggle[0])
+        dr.enable_grad(params["radius"])
+        params.update()
+        dr.eval(params["radius"])
+
+    def eval_backward():
+        """the step's own BSDF work: eval at every direction pair, then backward"""
+        v = bsdf.eval(mi.BSDFContext(), si, wo)
+        loss = dr.sum(dr.sum(mi.unpolarized_spectrum(v)))
+        dr.backward(loss)
+        dr.eval(dr.grad(params["radius"]))
+
+    t_update = timeit(update, repeat)
+    t_update_ad = timeit(update_ad, repeat)
+    t_step = timeit(eval_backward, repeat)
+    dr.disable_grad(params["radius"])
+    return {"variant": variant, "radius_um": radius, "directions": n_dirs,
+            "update_s": t_update, "update_ad_s": t_update_ad, "eval_backward_s": t_step,
+            "update_ad_over_eval_backward": t_update_ad / t_step}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
+    args = parser.parse_args()
+    variants = ["llvm_ad_mono", "llvm_ad_rgb", "llvm_ad_spectral"]
+    radii = [0.017, 3.0] if args.quick else [0.017, 0.3, 3.0]
+    dirs = [213] if args.quick else [213, 10_000, 1_000_000]
+    repeat = 2 if args.quick else 15
+    rows = [bench(v, r, n, repeat) for v in variants for r in radii for n in dirs]
+    header = (f"{'variant':18s} {'radius um':>9s} {'dirs':>8s} {'update ms':>10s} "
+              f"{'update+AD ms':>12s} {'eval+bwd ms':>11s} {'ratio':>6s}")
+    print(header)
+    for r in rows:
+        print(f"{r['variant']:18s} {r['radius_um']:9g} {r['directions']:8d} "
+              f"{1e3 * r['update_s']:10.3f} {1e3 * r['update_ad_s']:12.3f} "
+              f"{1e3 * r['eval_backward_s']:11.3f} {r['update_ad_over_eval_backward']:6.2f}")
+    print("ratio = (update with radius tangents) / (eval + backward over the pairs)")
+    OUT.mkdir(parents=True, exist_ok=True)
+    meta = {"machine": platform.processor() or platform.machine(), "cpus": __import__(
+        "os").cpu_count(), "python": platform.python_version(), "quick": args.quick}
+    (OUT / "mie_update.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for v in variants:
+        for r in radii:
+            sel = [x for x in rows if x["variant"] == v and x["radius_um"] == r]
+            ax.loglog([x["directions"] for x in sel], [1e3 * x["update_ad_s"] for x in sel],
+                      "o--", label=f"update+AD {v} r={r:g}")
+        sel = [x for x in rows if x["variant"] == v and x["radius_um"] == radii[0]]
+        ax.loglog([x["directions"] for x in sel], [1e3 * x["eval_backward_s"] for x in sel],
+                  "s-", label=f"eval+backward {v}")
+    ax.set(xlabel="direction pairs per step", ylabel="ms",
+           title="radius update (with tangents) vs eval+backward")
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(OUT / "mie_update.png", dpi=110)
+
+
+if __name__ == "__main__":
+    main()
