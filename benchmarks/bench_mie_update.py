@@ -88,6 +88,7 @@ def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
+    parser.add_argument("--out", type=Path, default=OUT, help="folder for .json and .png")
     args = parser.parse_args()
     variants = ["llvm_ad_mono", "llvm_ad_rgb", "llvm_ad_spectral"]
     radii = [0.017, 3.0] if args.quick else [0.017, 0.3, 3.0]
@@ -102,10 +103,10 @@ def main() -> None:
               f"{1e3 * r['update_s']:10.3f} {1e3 * r['update_ad_s']:12.3f} "
               f"{1e3 * r['eval_backward_s']:11.3f} {r['update_ad_over_eval_backward']:6.2f}")
     print("ratio = (update with radius tangents) / (eval + backward over the pairs)")
-    OUT.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
     meta = {"machine": platform.processor() or platform.machine(), "cpus": __import__(
         "os").cpu_count(), "python": platform.python_version(), "quick": args.quick}
-    (OUT / "mie_update.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    (args.out / "mie_update.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     import matplotlib
 
     matplotlib.use("Agg")
@@ -124,7 +125,7 @@ def main() -> None:
            title="radius update (with tangents) vs eval+backward")
     ax.legend(fontsize=6)
     fig.tight_layout()
-    fig.savefig(OUT / "mie_update.png", dpi=110)
+    fig.savefig(args.out / "mie_update.png", dpi=110)
 
 
 if __name__ == "__main__":

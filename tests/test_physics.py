@@ -6,10 +6,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from test_values import random_params
 
 from helpers import Albedo, channel_wavelengths, evaluate, make_bsdf, random_hemisphere, use_variant
 from reference import Params
+from test_values import random_params
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_spectral"])

@@ -33,7 +33,8 @@ class PowderColour:
         reflectance: directional-hemispherical reflectance for light at normal incidence
             (the integral of f cos(theta_o) over the hemisphere; what an integrating sphere
             measures in 0/d geometry).
-        xyz: CIE 1931 XYZ of that reflectance under D65 (Y = 1 for a perfect white).
+        xyz: CIE 1931 XYZ of that reflectance under D65 (Y = 1 for a perfect white); NaN
+            unless the wavelengths are a 1, 5, 10 or 20 nm grid covering 380-780 nm.
         srgb: sRGB-encoded colour (IEC 61966-2-1, D65), unclipped; components outside
             [0, 1] are out of the sRGB gamut.
         lab: CIELAB (D65 white), L* in [0, 100].
@@ -134,15 +135,29 @@ def colour_of_spectrum(wavelengths_nm: np.ndarray, reflectance: np.ndarray
     """(XYZ, sRGB, CIELAB) of a reflectance spectrum under D65, CIE 1931 2-degree observer.
 
     Args:
-        wavelengths_nm: increasing wavelengths, nm, regularly spaced.
+        wavelengths_nm: regularly spaced wavelengths (step 1, 5, 10 or 20 nm, as ASTM E308
+            requires) covering at least 380-780 nm.
         reflectance: reflectance at those wavelengths (dimensionless).
+
+    Raises:
+        ValueError: the wavelength grid does not meet these conditions.
     """
     import colour
 
-    sd = colour.SpectralDistribution(dict(zip(np.asarray(wavelengths_nm, float),
-                                              np.asarray(reflectance, float))))
-    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
-    xyz = colour.sd_to_XYZ(sd, cmfs, colour.SDS_ILLUMINANTS["D65"]) / 100.0
+    wl = np.asarray(wavelengths_nm, dtype=np.float64)
+    steps = np.unique(np.round(np.diff(wl), 9))
+    if len(steps) != 1 or steps[0] not in (1.0, 5.0, 10.0, 20.0) or wl[0] > 380.0 or \
+            wl[-1] < 780.0:
+        raise ValueError("colour needs a regular grid with a step of 1, 5, 10 or 20 nm "
+                         f"covering 380-780 nm; got {wl[0]:g}-{wl[-1]:g} nm, steps "
+                         f"{steps.tolist()}")
+    sd = colour.SpectralDistribution(dict(zip(wl, np.asarray(reflectance, float))))
+    shape = sd.shape
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
+    illuminant = colour.SDS_ILLUMINANTS["D65"].copy().align(shape)
+    # ASTM E308 integrates over its standard 360-780 nm shape and says so in a warning
+    with colour.utilities.suppress_warnings(colour_runtime_warnings=True):
+        xyz = colour.sd_to_XYZ(sd, cmfs, illuminant) / 100.0
     white = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
     return np.asarray(xyz), np.asarray(colour.XYZ_to_sRGB(xyz)), np.asarray(
         colour.XYZ_to_Lab(xyz, white))
@@ -208,7 +223,10 @@ def powder_colour(
         q_ext2 = get("q_ext2") if uses_mie and radius2 is not None else None
         q_sca2 = get("q_sca2") if uses_mie and radius2 is not None else None
         reflectance = _reflectance(bsdf, groups, n, samples)
-    xyz, srgb, lab = colour_of_spectrum(wavelengths_nm, reflectance)
+    try:
+        xyz, srgb, lab = colour_of_spectrum(wavelengths_nm, reflectance)
+    except ValueError:  # a grid the colour maths cannot use: spectra only
+        xyz = srgb = lab = np.full(3, np.nan)
     return PowderColour(wavelengths_nm, albedo, q_ext, q_sca, q_ext2, q_sca2, tau,
                         reflectance, xyz, srgb, lab, {k: v for k, v in props.items()
                                                       if k != "type"})

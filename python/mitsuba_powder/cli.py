@@ -36,6 +36,30 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_colour(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .appearance import powder_colour
+
+    if (args.radius2 is None) != (args.fraction2 is None):
+        raise ValueError("give both --radius2 and --fraction2, or neither")
+    c = powder_colour(args.radius, radius2=args.radius2, fraction2=args.fraction2,
+                      material=args.material, samples=args.samples)
+    grains = f"radius {args.radius:g} um"
+    if args.radius2 is not None:
+        grains += f" + radius2 {args.radius2:g} um (volume fraction {args.fraction2:g})"
+    print(f"{args.material}, {grains}; plugin defaults otherwise")
+    print(f"{'nm':>5s} {'albedo':>8s} {'Q_ext':>9s} {'Q_sca':>9s} {'tau_o':>7s} {'R(0/d)':>8s}")
+    step = max(1, len(c.wavelengths_nm) // 12)
+    for i in range(0, len(c.wavelengths_nm), step):
+        print(f"{c.wavelengths_nm[i]:5.0f} {c.albedo[i]:8.4f} {c.q_ext[i]:9.4g} "
+              f"{c.q_sca[i]:9.4g} {c.tau_o[i]:7.3f} {c.reflectance[i]:8.4f}")
+    print(f"CIE XYZ (D65): {np.array2string(c.xyz, precision=4)}")
+    print(f"sRGB: {np.array2string(c.srgb, precision=4)} (8 bit: {c.srgb8})")
+    print(f"CIELAB: L* {c.lab[0]:.2f}, a* {c.lab[1]:.2f}, b* {c.lab[2]:.2f}")
+    return 0
+
+
 def _parse_define(text: str) -> tuple[str, str]:
     if "=" not in text:
         raise SystemExit(f"mitsuba-powder: -D expects NAME=VALUE, got {text!r}")
@@ -63,6 +87,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="set a scene parameter declared with <default name=...> (repeatable)",
     )
     p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("colour", help="albedo, tau_o and colour of a powder from its grains")
+    p.add_argument("--radius", type=float, default=0.017, help="grain radius, um")
+    p.add_argument("--radius2", type=float, default=None, help="second population radius, um")
+    p.add_argument("--fraction2", type=float, default=None,
+                   help="volume fraction of the second population")
+    p.add_argument("--material", default="hematite",
+                   help="hematite, magnetite or a refractiveindex.info YAML file")
+    p.add_argument("--samples", type=int, default=4096, help="quadrature nodes")
+    p.set_defaults(func=_cmd_colour)
     return parser
 
 
