@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -60,6 +61,91 @@ def _cmd_colour(args: argparse.Namespace) -> int:
     return 0
 
 
+def _value(text: str):
+    """A --set value: a number if it parses as one, else the string."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _cmd_fit(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .fit import default_free, fit, predict
+    from .measurements import load_measurements
+    from .report import write_report
+
+    data = load_measurements(args.data)
+    if args.wavelength:
+        keep = np.isin(data.wavelength, args.wavelength)
+        missing = sorted(set(args.wavelength) - set(data.wavelengths().tolist()))
+        if missing:
+            raise ValueError(f"--wavelength {missing}: not in {args.data} "
+                             f"(it has {data.wavelengths().tolist()})")
+        data = data.subset(keep)
+    held_out = None
+    if args.fit_incidences:
+        incidences = [float(v) for v in args.fit_incidences.split(",")]
+        mask = np.isin(data.theta_i, incidences)
+        if not mask.any():
+            raise ValueError(f"--fit-incidences {incidences}: no such incidence in the data "
+                             f"({np.unique(data.theta_i).tolist()})")
+        held_out = data.subset(~mask)
+        data = data.subset(mask)
+    free = [n.strip() for n in args.free.split(",")] if args.free else default_free(data)
+    fixed = dict(_parse_define(d) for d in args.set)
+    fixed = {k: _value(v) for k, v in fixed.items()}
+    print(f"fitting {len(data)} measurements at {data.wavelengths().tolist()} nm; "
+          f"free: {', '.join(free)}; fixed: {fixed or 'plugin defaults'}")
+    result = fit(data, free, fixed, starts=args.starts, seed=args.seed, progress=print)
+    held = None
+    if held_out is not None and len(held_out):
+        held = (held_out, predict(result, held_out))
+    path = write_report(result, args.out, held)
+    for name in result.free:
+        keys = [k for k in result.uncertainties if k == name or k.startswith(name + "@")]
+        for k in keys:
+            value = (result.parameters[k] if "@" not in k else
+                     result.parameters_by_wavelength[float(k.split("@")[1])][name])
+            print(f"  {k:22s} = {value:.6g} +- {result.uncertainties[k]:.3g}")
+    print(f"RMSE(BRF) {result.rmse():.4g}, relative RMSE {result.relative_rmse_percent():.2f} %, "
+          f"{result.evaluations} evaluations in {result.seconds:.1f} s")
+    if held is not None:
+        from .report import statistics
+
+        st = statistics(held[1], held[0])
+        print(f"prediction of {st['n']} held-out measurements: relative RMSE "
+              f"{st['relative_rmse_percent']:.2f} %")
+    print(f"wrote {path} and figures in {args.out}")
+    return 0
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from .measurements import Measurements, save_measurements
+    from .protocols import simulate
+
+    spec = json.loads(Path(args.params).read_text())
+    wavelengths = args.wavelength or [700.0]
+    by_wl = spec.get("parameters_by_wavelength", {})
+    parts = []
+    for k, lam in enumerate(wavelengths):
+        props = by_wl.get(f"{lam:g}") or spec.get("parameters", spec)
+        props = {k_: v for k_, v in props.items() if k_ not in ("type", "wavelength")}
+        parts.append(simulate(props, args.protocol, (lam,), args.noise, args.seed + k))
+    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+    data = Measurements(cat("theta_i"), cat("theta_o"), cat("phi"), cat("wavelength"),
+                        cat("brf"), cat("sigma") if args.noise > 0 else None,
+                        parts[0].comments + [f"parameters from {args.params}"], "synthetic")
+    save_measurements(args.out, data)
+    print(f"wrote {len(data)} synthetic measurements to {args.out}")
+    return 0
+
+
 def _parse_define(text: str) -> tuple[str, str]:
     if "=" not in text:
         raise SystemExit(f"mitsuba-powder: -D expects NAME=VALUE, got {text!r}")
@@ -97,6 +183,34 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hematite, magnetite or a refractiveindex.info YAML file")
     p.add_argument("--samples", type=int, default=4096, help="quadrature nodes")
     p.set_defaults(func=_cmd_colour)
+
+    p = sub.add_parser("fit", help="fit the powder model to goniometer measurements")
+    p.add_argument("data", help="measurement CSV (see mitsuba_powder.measurements)")
+    p.add_argument("--wavelength", type=float, nargs="+", default=None,
+                   help="fit only these wavelengths, nm (several: a joint fit)")
+    p.add_argument("--free", default=None,
+                   help="plugin properties to fit, comma-separated (default: amplitude_volume,"
+                        "g,extinction,amplitude_surface,correlation_length, plus radius when "
+                        "several wavelengths are fitted)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a fixed plugin property, e.g. --set tau_o=0.6667 (repeatable)")
+    p.add_argument("--fit-incidences", default=None, metavar="DEG,DEG,...",
+                   help="fit only these incidences and report the prediction of the others")
+    p.add_argument("--starts", type=int, default=4, help="starts (1: local only)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="fit_out", help="output folder (fit.json, figures)")
+    p.set_defaults(func=_cmd_fit)
+
+    p = sub.add_parser("simulate", help="simulate measurements at protocol geometries")
+    p.add_argument("--params", required=True,
+                   help="JSON of plugin properties, or a fit.json (its 'parameters')")
+    p.add_argument("--protocol", default="shadows,backscatter",
+                   help="comma-separated: shadows, backscatter")
+    p.add_argument("--wavelength", type=float, nargs="+", default=None, help="nm (700)")
+    p.add_argument("--noise", type=float, default=0.0, help="relative 1-sigma noise")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output CSV")
+    p.set_defaults(func=_cmd_simulate)
     return parser
 
 
@@ -105,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+    except (ValueError, FileNotFoundError, RuntimeError, KeyError) as exc:
         print(f"mitsuba-powder: error: {exc}", file=sys.stderr)
         return 2
 

@@ -41,7 +41,9 @@ class ParamSpec:
 
 
 FITTABLE: dict[str, ParamSpec] = {
-    "amplitude_volume": ParamSpec(1e-3, 1e2, True, 1.0),
+    # A_v stays near 1 for real powders (MODEL.md); a wide range opens a degenerate valley
+    # where a tiny albedo (small grains) is traded against a huge A_v
+    "amplitude_volume": ParamSpec(0.05, 5.0, True, 1.0),
     "g": ParamSpec(-0.95, 0.95, False, 0.0),
     "extinction": ParamSpec(1e-3, 1e3, True, 1.0),
     "radius": ParamSpec(3e-3, 3.0, True, 0.05),
@@ -50,14 +52,29 @@ FITTABLE: dict[str, ParamSpec] = {
     "albedo": ParamSpec(0.0, 1.0, False, 0.8),
     "tau_o": ParamSpec(1e-2, 1e2, True, 2.0 / 3.0),
     "thickness": ParamSpec(1e-2, 1e4, True, 100.0),
-    "amplitude_surface": ParamSpec(1e-9, 1.0, True, 1e-5),
+    "amplitude_surface": ParamSpec(1e-9, 0.1, True, 1e-5),
     "correlation_length": ParamSpec(1e-2, 1e2, True, 1.0),
     "sigma": ParamSpec(1e-3, 1.5, True, 0.1),
 }
 
-#: The paper's six (Table 1) with the Mie radius
+#: Radius profile (radius free): grid size, L-BFGS evaluations per radius, points kept
+PROFILE_RADII = 60
+PROFILE_EVALUATIONS = 30
+PROFILE_KEEP = 3
+
+#: The paper's six (Table 1, with the effective radius): the default for several wavelengths
 DEFAULT_FREE = ["amplitude_volume", "g", "extinction", "radius", "amplitude_surface",
                 "correlation_length"]
+
+#: The paper's five with the radius fixed: the default for one wavelength, where the BRF
+#: depends on the radius only through rho(r), which several radii share (docs/fitting.md)
+DEFAULT_FREE_ONE_WAVELENGTH = ["amplitude_volume", "g", "extinction", "amplitude_surface",
+                               "correlation_length"]
+
+
+def default_free(data: Measurements) -> list[str]:
+    """The default free properties for ``data`` (see :data:`DEFAULT_FREE`)."""
+    return list(DEFAULT_FREE if len(data.wavelengths()) > 1 else DEFAULT_FREE_ONE_WAVELENGTH)
 
 
 def _traverse_key(name: str) -> str:
@@ -221,9 +238,10 @@ class Problem:
         return jac
 
 
-def _run(algorithm: int, problem: Problem, y0: np.ndarray, max_evaluations: int
-         ) -> tuple[float, np.ndarray]:
-    """One nlopt run from y0; returns the best (loss, y) it evaluated."""
+def _run(algorithm: int, problem: Problem, y0: np.ndarray, max_evaluations: int,
+         hold: tuple[int, ...] = ()) -> tuple[float, np.ndarray]:
+    """One nlopt run from y0 (variables in ``hold`` kept at their y0 value); returns the best
+    (loss, y) it evaluated."""
     import nlopt
 
     best: list = [math.inf, np.clip(y0, problem.lower, problem.upper)]
@@ -242,8 +260,11 @@ def _run(algorithm: int, problem: Problem, y0: np.ndarray, max_evaluations: int
         return value
 
     opt = nlopt.opt(algorithm, len(y0))
-    opt.set_lower_bounds(problem.lower)
-    opt.set_upper_bounds(problem.upper)
+    lower, upper = problem.lower.copy(), problem.upper.copy()
+    for j in hold:  # equal bounds: nlopt keeps the variable fixed
+        lower[j] = upper[j] = best[1][j]
+    opt.set_lower_bounds(lower)
+    opt.set_upper_bounds(upper)
     opt.set_min_objective(objective)
     opt.set_ftol_rel(1e-9)
     opt.set_xtol_rel(1e-7)
@@ -265,11 +286,14 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
 
     Args:
         data: measurements (one or several wavelengths).
-        free: plugin properties to fit (default :data:`DEFAULT_FREE`).
+        free: plugin properties to fit (default: :func:`default_free`: the paper's six with
+            several wavelengths, the five without the radius with one).
         fixed: other plugin properties, held fixed (e.g. ``{"material": "magnetite"}``,
             ``{"eta": 1.35, "k": 0.0}``, ``{"tau_o": 0.6667}``).
-        starts: number of starts: L-BFGS from the default start, then ``starts - 1`` runs of
-            a global search (ISRES, from a random point of the bounds) polished by L-BFGS.
+        starts: L-BFGS from the default start (and, with the radius free, from the best
+            points of a profile over the radius, see :data:`PROFILE_RADII`), then
+            ``starts - 1`` runs of a global search (ISRES, from a random point of the bounds)
+            polished by L-BFGS.
         max_evaluations: objective evaluations of each L-BFGS run.
         global_evaluations: objective evaluations of each ISRES run.
         seed: seed of the random starts.
@@ -278,21 +302,47 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
     Raises:
         ValueError: unknown, repeated or inconsistent parameter names.
     """
-    import nlopt
 
     if starts < 1:
         raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
+    with variant():  # once for the whole fit: switching variants per evaluation is slow
+        return _fit(data, free, fixed, starts, max_evaluations, global_evaluations, seed,
+                    progress)
+
+
+def _fit(data, free, fixed, starts, max_evaluations, global_evaluations, seed, progress
+         ) -> FitResult:
+    import nlopt
+
     t0 = time.perf_counter()
-    problem = Problem(data, list(free or DEFAULT_FREE), dict(fixed or {}))
+    problem = Problem(data, list(free or default_free(data)), dict(fixed or {}))
     n = len(problem.names)
     rng = np.random.default_rng(seed)
     best = (math.inf, problem.start())
     history = []
-    for k in range(starts):
+    # local starts: the default start; with the radius free, a profile over the radius
+    # (rho(r) from Mie theory is not monotonic, so the loss has a narrow basin per root):
+    # the other variables are optimised briefly at each radius of a log grid, and the best
+    # few points become full starts; then the global starts
+    local = [("default start", problem.start())]
+    if "radius" in problem.free:
+        j = [n for n, _ in problem.names].index("radius")
+        profile = []
+        for r in np.geomspace(FITTABLE["radius"].lower, FITTABLE["radius"].upper,
+                              PROFILE_RADII):
+            y = problem.start()
+            y[j] = math.log10(r)
+            profile.append(_run(nlopt.LD_LBFGS, problem, y, PROFILE_EVALUATIONS, hold=(j,)))
+        profile.sort(key=lambda item: item[0])
+        for value, y in profile[:PROFILE_KEEP]:
+            local.append((f"radius profile, radius {10 ** y[j]:.4g} um (loss {value:.4g})", y))
+        if progress:
+            progress(f"radius profile: {PROFILE_RADII} radii, {problem.evaluations} "
+                     "evaluations")
+    plan = local + [("global", None)] * max(0, starts - 1)
+    for k, (stage, y0) in enumerate(plan):
         before = problem.evaluations
-        if k == 0:
-            y0, stage = problem.start(), "default start"
-        else:
+        if y0 is None:
             # global stage: ISRES (derivative free) from a random point of the bounds
             nlopt.srand(seed + k)
             y0 = _run(nlopt.GN_ISRES, problem, rng.uniform(problem.lower, problem.upper),
@@ -303,7 +353,7 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
         if value < best[0]:
             best = (value, y)
         if progress:
-            progress(f"start {k + 1}/{starts} ({stage}): loss {value:.6g} "
+            progress(f"start {k + 1}/{len(plan)} ({stage}): loss {value:.6g} "
                      f"({problem.evaluations - before} evaluations), best {best[0]:.6g}")
 
     x = problem.x_of(best[1])
@@ -338,3 +388,26 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
                                 "values": ", ".join(f"{v:.8g}" for _, v in albedo)}
     return FitResult(parameters, by_wavelength, uncertainties, problem.free, data, model_brf,
                      chi2, problem.evaluations, time.perf_counter() - t0, history)
+
+
+def predict(result: FitResult, data: Measurements) -> np.ndarray:
+    """BRF of the fitted material at other geometries (each wavelength with its parameters).
+
+    Raises:
+        ValueError: ``data`` has a wavelength the fit did not cover.
+    """
+    out = np.empty(len(data))
+    with variant():
+        for lam in data.wavelengths():
+            _predict_one(result, data, lam, out)
+    return out
+
+
+def _predict_one(result: FitResult, data: Measurements, lam: float, out: np.ndarray) -> None:
+    """Fill ``out`` at the rows of wavelength ``lam``."""
+    props = result.parameters_by_wavelength.get(float(lam))
+    if props is None:
+        raise ValueError(f"wavelength {lam:g} nm was not fitted; fitted: "
+                         f"{sorted(result.parameters_by_wavelength)}")
+    sel = data.wavelength == lam
+    out[sel] = PowderBRF(data.subset(sel), props).brf()

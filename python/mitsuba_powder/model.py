@@ -23,6 +23,9 @@ VARIANT = "llvm_ad_mono"
 def variant(name: str = VARIANT) -> Iterator[None]:
     """Use a Mitsuba variant inside a block, restoring the caller's afterwards."""
     previous = mi.variant()
+    if previous == name:  # nested use (e.g. each objective evaluation of a fit): free
+        yield
+        return
     mi.set_variant(name)
     from . import register
 
@@ -30,7 +33,7 @@ def variant(name: str = VARIANT) -> Iterator[None]:
     try:
         yield
     finally:
-        if previous is not None and previous != name:
+        if previous is not None:
             mi.set_variant(previous)
 
 

@@ -273,6 +273,11 @@ public:
         // poison the gradients of the extinction)
         m_finite_thickness = std::isfinite(value_of(m_thickness));
 
+        // Opaque first: the Mie tangents below must not bake the radius in as a literal
+        // (that would compile a new kernel for every radius an optimiser tries)
+        dr::make_opaque(m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma,
+                        m_radius, m_radius2, m_fraction2);
+
         bool grains_changed = keys.empty() || string::contains(keys, "radius") ||
                               string::contains(keys, "radius2") ||
                               string::contains(keys, "fraction2");
@@ -284,8 +289,7 @@ public:
                               : Float(dr::mean(dr::detach(m_rho_table)));
         m_tau_mean = m_tau_given ? dr::detach(m_tau_o) : Float(dr::mean(m_tau_table));
 
-        dr::make_opaque(m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc,
-                        m_sigma, m_rho_mean, m_tau_mean, m_radius, m_radius2, m_fraction2);
+        dr::make_opaque(m_rho_mean, m_tau_mean);
     }
 
     // -----------------------------------------------------------------------
