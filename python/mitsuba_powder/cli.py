@@ -146,6 +146,28 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .compare import compare_models, write_comparison
+    from .measurements import load_measurements
+
+    data = load_measurements(args.data)
+    if args.wavelength:
+        data = data.subset(np.isin(data.wavelength, args.wavelength))
+        if not len(data):
+            raise ValueError(f"--wavelength {args.wavelength}: not in {args.data}")
+    free = [n.strip() for n in args.free.split(",")] if args.free else None
+    fixed = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
+    print(f"comparing the powder model with lambertian, oren_nayar, rtlsr and hapke on "
+          f"{len(data)} measurements at {data.wavelengths().tolist()} nm")
+    rows = compare_models(data, free, fixed, starts=args.starts)
+    path = write_comparison(rows, args.out)
+    print(path.read_text())
+    print(f"wrote {path} and comparison.json")
+    return 0
+
+
 def _parse_define(text: str) -> tuple[str, str]:
     if "=" not in text:
         raise SystemExit(f"mitsuba-powder: -D expects NAME=VALUE, got {text!r}")
@@ -211,6 +233,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output CSV")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("compare-models",
+                       help="fit the powder model and four baselines to the same data")
+    p.add_argument("data", help="measurement CSV")
+    p.add_argument("--wavelength", type=float, nargs="+", default=None, help="nm")
+    p.add_argument("--free", default=None, help="powder properties to fit (as in fit)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="fixed powder property (repeatable)")
+    p.add_argument("--starts", type=int, default=4)
+    p.add_argument("--out", default="compare_out", help="output folder")
+    p.set_defaults(func=_cmd_compare)
     return parser
 
 

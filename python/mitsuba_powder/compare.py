@@ -1,0 +1,64 @@
+"""Compare the powder model with the baselines on the same measurements."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .baselines import MODELS, fit_baseline
+from .fit import fit
+from .measurements import Measurements
+from .report import statistics
+
+
+def compare_models(data: Measurements, free: list[str] | None = None,
+                   fixed: dict | None = None, starts: int = 4) -> list[dict]:
+    """Fit the powder model (per wavelength) and every baseline; one row per model and
+    wavelength with the number of parameters and the fit statistics."""
+    rows = []
+    for lam in data.wavelengths():
+        d = data.subset(data.wavelength == lam)
+        result = fit(d, free, fixed, starts=starts)
+        rows.append({"model": "powder", "wavelength": float(lam),
+                     "parameters": len(result.uncertainties),
+                     **statistics(result.model_brf, d), "seconds": result.seconds,
+                     "fitted": {k: v for k, v in result.parameters.items()
+                                if k in result.free}})
+    for name in MODELS:
+        for b in fit_baseline(name, data, starts=starts):
+            sel = data.wavelength == b.wavelength
+            rows.append({"model": name, "wavelength": b.wavelength,
+                         "parameters": len(b.parameters),
+                         **statistics(b.model_brf, data.subset(sel)), "seconds": b.seconds,
+                         "fitted": b.parameters})
+    return rows
+
+
+def write_comparison(rows: list[dict], out_dir: str | Path) -> Path:
+    """comparison.json and comparison.md (a table per wavelength)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "comparison.json").write_text(json.dumps(rows, indent=1))
+    lines = ["| nm | model | parameters | rel. RMSE % | max rel. err. % | RMSE BRF | s |",
+             "|---|---|---|---|---|---|---|"]
+    for lam in sorted({r["wavelength"] for r in rows}):
+        for r in sorted((r for r in rows if r["wavelength"] == lam),
+                        key=lambda r: r["relative_rmse_percent"]):
+            lines.append(f"| {lam:g} | {r['model']} | {r['parameters']} | "
+                         f"{r['relative_rmse_percent']:.2f} | "
+                         f"{r['max_abs_relative_error_percent']:.1f} | {r['rmse_brf']:.4f} | "
+                         f"{r['seconds']:.1f} |")
+    path = out_dir / "comparison.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def best_per_wavelength(rows: list[dict]) -> dict[float, str]:
+    """The model with the lowest relative RMSE at each wavelength."""
+    out = {}
+    for lam in sorted({r["wavelength"] for r in rows}):
+        sub = [r for r in rows if r["wavelength"] == lam]
+        out[lam] = sub[int(np.argmin([r["relative_rmse_percent"] for r in sub]))]["model"]
+    return out
