@@ -90,3 +90,7 @@ def test_compare_models_cli(tmp_path, capsys):
     assert "| 700 | powder |" in (tmp_path / "cmp" / "comparison.md").read_text()
     with pytest.raises(ValueError, match="unknown model"):
         fit_baseline("phong", baseline_data("lambertian", {"rho": 0.5}))
+    with pytest.raises(ValueError, match="starts = 0 is out of range"):
+        fit_baseline("lambertian", baseline_data("lambertian", {"rho": 0.5}), starts=0)
+    assert main(["compare-models", str(tmp_path / "d.csv"), "--starts", "0"]) == 2
+    assert "starts = 0" in capsys.readouterr().err

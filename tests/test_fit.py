@@ -265,6 +265,10 @@ def test_cli_fit_errors(tmp_path, capsys):
     assert "cannot fit ['nonsense']" in capsys.readouterr().err
     assert main(["fit", str(tmp_path / "ok.csv"), "--wavelength", "500"]) == 2
     assert "not in" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "ok.csv"), "--fit-incidences", "0,abc"]) == 2
+    assert "--fit-incidences '0,abc'" in capsys.readouterr().err
+    assert main(["fit", str(tmp_path / "ok.csv"), "--starts", "0"]) == 2
+    assert "starts = 0" in capsys.readouterr().err
 
 
 def test_predict_requires_fitted_wavelengths():

@@ -140,6 +140,8 @@ def fit_baseline(model: str, data: Measurements, starts: int = 4, seed: int = 0
 
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; models: {', '.join(MODELS)}")
+    if starts < 1:
+        raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
     func, specs = MODELS[model]
     names = list(specs)
     to_y = np.array([s.log for s in specs.values()])

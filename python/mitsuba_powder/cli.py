@@ -86,7 +86,11 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         data = data.subset(keep)
     held_out = None
     if args.fit_incidences:
-        incidences = [float(v) for v in args.fit_incidences.split(",")]
+        try:
+            incidences = [float(v) for v in args.fit_incidences.split(",")]
+        except ValueError:
+            raise ValueError(f"--fit-incidences {args.fit_incidences!r}: expected "
+                             "comma-separated angles in degrees, e.g. 0,30,60") from None
         mask = np.isin(data.theta_i, incidences)
         if not mask.any():
             raise ValueError(f"--fit-incidences {incidences}: no such incidence in the data "

@@ -17,6 +17,8 @@ def compare_models(data: Measurements, free: list[str] | None = None,
                    fixed: dict | None = None, starts: int = 4) -> list[dict]:
     """Fit the powder model (per wavelength) and every baseline; one row per model and
     wavelength with the number of parameters and the fit statistics."""
+    if starts < 1:
+        raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
     rows = []
     for lam in data.wavelengths():
         d = data.subset(data.wavelength == lam)
