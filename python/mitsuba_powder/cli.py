@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -126,20 +125,16 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    import json
-
     import numpy as np
 
     from .measurements import Measurements, save_measurements
+    from .params import load_properties
     from .protocols import simulate
 
-    spec = json.loads(Path(args.params).read_text())
     wavelengths = args.wavelength or [700.0]
-    by_wl = spec.get("parameters_by_wavelength", {})
     parts = []
     for k, lam in enumerate(wavelengths):
-        props = by_wl.get(f"{lam:g}") or spec.get("parameters", spec)
-        props = {k_: v for k_, v in props.items() if k_ not in ("type", "wavelength")}
+        props = load_properties(args.params, lam)
         parts.append(simulate(props, args.protocol, (lam,), args.noise, args.seed + k))
     cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
     data = Measurements(cat("theta_i"), cat("theta_o"), cat("phi"), cat("wavelength"),
@@ -169,6 +164,80 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     path = write_comparison(rows, args.out)
     print(path.read_text())
     print(f"wrote {path} and comparison.json")
+    return 0
+
+
+def _cmd_render_gonio(args: argparse.Namespace) -> int:
+    from .gonio import render_gonio, render_measurements
+    from .gonio_report import write_gonio_report
+    from .measurements import load_measurements
+    from .params import load_properties
+    from .protocols import protocol_geometries
+
+    overrides = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
+    kwargs = dict(spp=args.spp, resolution=args.resolution, source_radius=args.source_radius,
+                  strategy=args.strategy, seed=args.seed, progress=print)
+    if args.data:
+        if args.protocol:
+            raise ValueError("give --data or --protocol, not both")
+        data = load_measurements(args.data)
+        props = lambda lam: load_properties(args.params, lam, overrides)  # noqa: E731
+        result = render_measurements(props, data, variant=args.variant or "llvm_ad_mono",
+                                     **kwargs)
+    else:
+        ti, to, ph = protocol_geometries(args.protocol or "shadows,backscatter")
+        variant = args.variant or "llvm_ad_rgb"
+        wl = args.wavelength if "mono" in variant else None
+        props = load_properties(args.params, wl, overrides)
+        result = render_gonio(props, ti, to, ph, wavelength=wl, variant=variant, **kwargs)
+    path = write_gonio_report(args.out, result)
+    s = result.summary()
+    print(f"{s['geometries']} geometries x {len(result.channels)} channels in "
+          f"{result.seconds:.1f} s ({result.variant}, {result.spp} spp): max |z| "
+          f"{s['max_abs_z']:.2f}, {s['beyond_3_sigma']} beyond 3 sigma (expected "
+          f"{s['expected_beyond_3_sigma_if_gaussian']} if Gaussian)")
+    print(f"wrote {path}, gonio.csv and gonio.png")
+    return 0
+
+
+def _corners(text: str):
+    try:
+        pts = [tuple(float(v) for v in p.split(",")) for p in text.split()]
+    except ValueError:
+        pts = []
+    if len(pts) != 4 or any(len(p) != 2 for p in pts):
+        raise ValueError(f"--chart {text!r}: expected four 'x,y' pixel positions separated by "
+                         "spaces (centres of the dark skin, bluish green, black and white "
+                         "patches)")
+    return pts
+
+
+def _cmd_compare_photo(args: argparse.Namespace) -> int:
+    from .photo import compare_images, read_image, write_report
+
+    render = read_image(args.render, args.render_encoding)
+    photo = read_image(args.photo, args.photo_encoding)
+    region = None
+    if args.region:
+        try:
+            region = [int(v) for v in args.region.split(",")]
+        except ValueError:
+            region = []
+        if len(region) != 4:
+            raise ValueError(f"--region {args.region!r}: expected x0,y0,x1,y1 in pixels")
+    stats, aligned, de = compare_images(
+        render, photo, corners=_corners(args.chart) if args.chart else None,
+        chart_half=args.chart_window, align_mode=args.align, region=region, white=args.white)
+    path = write_report(args.out, stats, render, aligned, de)
+    if stats.chart_delta_e_mean is not None:
+        print(f"ColorChecker calibration: patches Delta E 2000 mean "
+              f"{stats.chart_delta_e_mean:.2f}, max {stats.chart_delta_e_max:.2f}")
+    wb = ", ".join(f"{v:.3f}" for v in stats.white_balance)
+    print(f"alignment ({args.align}): exposure {stats.exposure_stops:+.3f} stops, "
+          f"white balance (R/G, 1, B/G) = ({wb})")
+    print(f"CIEDE2000 over {stats.pixels} pixels: mean {stats.mean:.2f}, median "
+          f"{stats.median:.2f}, p95 {stats.p95:.2f}, max {stats.max:.2f}")
+    print(f"wrote {path}, delta_e.png and side_by_side.png")
     return 0
 
 
@@ -248,6 +317,47 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--starts", type=int, default=4)
     p.add_argument("--out", default="compare_out", help="output folder")
     p.set_defaults(func=_cmd_compare)
+
+    p = sub.add_parser("render-gonio",
+                       help="render the patch at gonio geometries; rendered vs analytic BRF")
+    p.add_argument("--protocol", default=None,
+                   help="comma-separated protocols: shadows, backscatter (default both)")
+    p.add_argument("--data", default=None,
+                   help="measurement CSV: render its geometries and wavelengths (mono)")
+    p.add_argument("--params", default=None, help="JSON of plugin properties or a fit.json")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="plugin property (repeatable), e.g. --set extinction=2")
+    p.add_argument("--variant", default=None,
+                   help="Mitsuba variant (default llvm_ad_rgb; llvm_ad_mono with --data)")
+    p.add_argument("--wavelength", type=float, default=None,
+                   help="nm, mono variants with --protocol (default 700)")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel")
+    p.add_argument("--resolution", type=int, default=16, help="pixels per side per geometry")
+    p.add_argument("--source-radius", type=float, default=0.0,
+                   help="angular radius of the source, degrees (0: collimated)")
+    p.add_argument("--strategy", default="emitter", help="emitter, bsdf or mis")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="gonio_out", help="output folder")
+    p.set_defaults(func=_cmd_render_gonio)
+
+    p = sub.add_parser("compare", help="compare a render with a photo (CIEDE2000)")
+    p.add_argument("render", help="rendered image (.exr, .png, .jpg)")
+    p.add_argument("photo", help="photograph (.exr, .png, .jpg; 8 or 16 bit)")
+    for who in ("render", "photo"):
+        p.add_argument(f"--{who}-encoding", default="auto",
+                       help="auto (EXR linear, PNG/JPEG sRGB), linear or srgb")
+    p.add_argument("--chart", default=None, metavar="'X,Y X,Y X,Y X,Y'",
+                   help="calibrate the photo with the ColorChecker 24 in it: pixel centres of "
+                        "its dark skin, bluish green, black and white patches")
+    p.add_argument("--chart-window", type=int, default=3,
+                   help="half-size of the patch sampling window, px")
+    p.add_argument("--align", default="white-balance",
+                   help="none, exposure or white-balance (per-channel gains)")
+    p.add_argument("--region", default=None, help="x0,y0,x1,y1: pixels to compare")
+    p.add_argument("--white", type=float, default=None,
+                   help="linear level of L* = 100 (default: the render's 99th percentile)")
+    p.add_argument("--out", default="compare_out", help="output folder")
+    p.set_defaults(func=_cmd_compare_photo)
     return parser
 
 

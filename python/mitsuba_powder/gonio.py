@@ -1,0 +1,374 @@
+"""Render a flat powder patch under goniometer geometries and measure its BRF from the image.
+
+The virtual goniometer (the same geometry as ``scenes/gonio.xml``):
+
+- a flat patch (a 200 x 200 rectangle, normal +z) with the ``powder`` BSDF;
+- a collimated source at ``wi = (sin theta_i, 0, cos theta_i)``: a ``directional`` emitter of
+  irradiance ``E = 1`` (normal to the beam), or, with ``source_radius > 0`` degrees, a distant
+  disk of that angular radius with the same irradiance (a source of finite divergence, which
+  makes emitter, BSDF and MIS sampling all meaningful);
+- per geometry an orthographic sensor looking at the patch from
+  ``wo = (sin theta_o cos phi, sin theta_o sin phi, cos theta_o)``, with a box pixel filter,
+  so that every pixel is an independent Monte Carlo estimate of the same radiance.
+
+All sensors of one incidence are rendered at once through Mitsuba's ``batch`` sensor. The
+measured reflectance factor is ``BRF = pi L / (E cos theta_i)``; its Monte Carlo standard
+error is the spread of the pixels over the square root of their number. The analytic BRF is
+``pi f(wi, wo)`` from the plugin's ``eval`` (averaged over the source disk by quadrature), and
+in spectral variants it goes through the film's own spectral-to-sRGB weighting.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .measurements import Measurements
+from .model import variant as use_variant
+
+SOURCE_DISTANCE = 1.0e4  # scene units; the visible patch is ~3 units wide
+CAMERA_DISTANCE = 10.0
+PATCH_HALF_SIZE = 100.0
+STRATEGIES = ("emitter", "bsdf", "mis")
+#: relative tolerance floor (float32 rounding) used where the Monte Carlo error vanishes
+FLOAT_FLOOR = 1e-5
+
+
+@dataclass
+class GonioResult:
+    """Rendered and analytic BRF at gonio geometries.
+
+    Attributes:
+        theta_i, theta_o, phi: geometries, degrees, shape (N,).
+        wavelength: nm per geometry in mono variants, NaN otherwise.
+        channels: names of the value columns (``R, G, B`` or ``Y`` for mono).
+        rendered: BRF measured on the image, (N, C).
+        stderr: its Monte Carlo standard error, (N, C).
+        analytic: BRF of the plugin's ``eval`` at the same geometry (and source), (N, C).
+        measured: BRF of the measurement file, (N,), when one was given.
+        variant, spp, resolution, source_radius, strategy: how it was rendered.
+        seconds: wall-clock time of the renders, s.
+    """
+
+    theta_i: np.ndarray
+    theta_o: np.ndarray
+    phi: np.ndarray
+    wavelength: np.ndarray
+    channels: list[str]
+    rendered: np.ndarray
+    stderr: np.ndarray
+    analytic: np.ndarray
+    measured: np.ndarray | None = None
+    variant: str = ""
+    spp: int = 0
+    resolution: int = 0
+    source_radius: float = 0.0
+    strategy: str = "emitter"
+    seconds: float = 0.0
+    properties: dict = field(default_factory=dict)
+
+    def tolerance(self) -> np.ndarray:
+        """``3 sigma_MC`` plus a float32 floor ``1e-5 |analytic|`` (N, C)."""
+        return 3.0 * self.stderr + FLOAT_FLOOR * np.abs(self.analytic)
+
+    def z(self) -> np.ndarray:
+        """(rendered - analytic) / sqrt(stderr^2 + (floor analytic)^2), (N, C)."""
+        scale = np.sqrt(self.stderr**2 + (FLOAT_FLOOR * self.analytic) ** 2)
+        return (self.rendered - self.analytic) / np.maximum(scale, 1e-30)
+
+    def agrees(self) -> np.ndarray:
+        """True where the render is within :meth:`tolerance` of the analytic BRF, (N, C)."""
+        return np.abs(self.rendered - self.analytic) <= self.tolerance()
+
+    def summary(self) -> dict:
+        """Counts and extremes of the agreement (for reports)."""
+        z = self.z()
+        n = z.size
+        return {
+            "geometries": int(len(self.theta_i)), "values": int(n),
+            "max_abs_z": float(np.max(np.abs(z))) if n else 0.0,
+            "beyond_3_sigma": int(np.sum(~self.agrees())),
+            "expected_beyond_3_sigma_if_gaussian": round(0.0027 * n, 2),
+            "median_relative_stderr": float(np.median(self.stderr / np.maximum(
+                np.abs(self.analytic), 1e-30))),
+            "max_relative_difference": float(np.max(np.abs(self.rendered - self.analytic)
+                                                    / np.maximum(np.abs(self.analytic), 1e-30))),
+        }
+
+    def rows(self) -> list[dict]:
+        """One dict per geometry and channel (the CSV rows of :func:`write_gonio_csv`)."""
+        out = []
+        z = self.z()
+        for i in range(len(self.theta_i)):
+            for c, name in enumerate(self.channels):
+                row = {"theta_i": self.theta_i[i], "theta_o": self.theta_o[i],
+                       "phi": self.phi[i], "wavelength": self.wavelength[i], "channel": name,
+                       "brf_rendered": self.rendered[i, c], "stderr": self.stderr[i, c],
+                       "brf_analytic": self.analytic[i, c], "z": z[i, c]}
+                if self.measured is not None:
+                    row["brf_measured"] = self.measured[i]
+                out.append(row)
+        return out
+
+
+def _transform_look(direction: np.ndarray, distance: float) -> mi.ScalarTransform4f:
+    up = [1.0, 0.0, 0.0] if abs(direction[2]) > 0.99 else [0.0, 0.0, 1.0]
+    return mi.ScalarTransform4f().look_at(origin=[float(v * distance) for v in direction],
+                                          target=[0.0, 0.0, 0.0], up=up)
+
+
+def _film(width: int, height: int) -> dict:
+    return {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+            "pixel_format": "luminance" if "mono" in mi.variant() else "rgb",
+            "component_format": "float32"}
+
+
+def _sensor(direction: np.ndarray, resolution: int, spp: int) -> dict:
+    return {"type": "orthographic",
+            "to_world": _transform_look(direction, CAMERA_DISTANCE)
+            @ mi.ScalarTransform4f().scale([0.5, 0.5, 1.0]),
+            "film": _film(resolution, resolution),
+            "sampler": {"type": "independent", "sample_count": spp}}
+
+
+def _uniform(value: float) -> dict:
+    return {"type": "uniform", "value": float(value)}
+
+
+def source_dict(wi: np.ndarray, source_radius: float = 0.0, irradiance: float = 1.0) -> dict:
+    """Scene-dict entries of the collimated source at direction ``wi`` (unit, to the source).
+
+    ``source_radius = 0``: a directional emitter of irradiance ``irradiance``. Otherwise a disk
+    of angular radius ``source_radius`` degrees at :data:`SOURCE_DISTANCE`, radiance chosen so
+    that the irradiance normal to ``wi`` is ``irradiance`` (``E = pi L sin^2 alpha``).
+    """
+    wi = np.asarray(wi, dtype=np.float64)
+    if source_radius == 0.0:
+        return {"source": {"type": "directional", "direction": [float(-v) for v in wi],
+                           "irradiance": _uniform(irradiance)}}
+    alpha = np.radians(source_radius)
+    radius = SOURCE_DISTANCE * np.tan(alpha)
+    radiance = irradiance / (np.pi * np.sin(alpha) ** 2)
+    # the disk's normal (+z) must face the patch: look_at maps +z to the viewing direction
+    to_world = _transform_look(wi, SOURCE_DISTANCE) @ mi.ScalarTransform4f().scale(
+        [radius, radius, 1.0])
+    return {"source": {"type": "disk", "to_world": to_world,
+                       "emitter": {"type": "area", "radiance": _uniform(radiance)}}}
+
+
+def _integrator(strategy: str, directional: bool) -> dict:
+    if strategy not in STRATEGIES:
+        raise ValueError(f"strategy = {strategy!r} is not valid; choose one of {STRATEGIES}")
+    if directional and strategy != "emitter":
+        raise ValueError(f"strategy = {strategy!r} needs a source that BSDF samples can hit: "
+                         "a directional source (source_radius = 0) is a delta light; "
+                         "give source_radius > 0 (degrees) or use strategy 'emitter'")
+    emitter, bsdf = {"emitter": (1, 0), "bsdf": (0, 1), "mis": (1, 1)}[strategy]
+    return {"type": "direct", "emitter_samples": emitter, "bsdf_samples": bsdf}
+
+
+def patch_dict(properties: dict) -> dict:
+    """The powder patch (normal +z) of the virtual goniometer."""
+    return {"type": "rectangle",
+            "to_world": mi.ScalarTransform4f().scale([PATCH_HALF_SIZE, PATCH_HALF_SIZE, 1.0]),
+            "bsdf": {"type": "powder", **properties}}
+
+
+def _check(variant: str, spp: int, resolution: int, source_radius: float) -> None:
+    if variant not in mi.variants():
+        raise ValueError(f"variant = {variant!r} is not available; choose one of "
+                         f"{mi.variants()}")
+    if spp < 1:
+        raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
+    if resolution < 2:
+        raise ValueError(f"resolution = {resolution} is out of range; valid range is "
+                         "[2, inf) (the error estimate needs several pixels)")
+    if not 0.0 <= source_radius <= 10.0:
+        raise ValueError(f"source_radius = {source_radius} degrees is out of range; "
+                         "valid range is [0, 10]")
+
+
+def _disk_nodes(wi: np.ndarray, source_radius: float, n_r: int = 16, n_psi: int = 32
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Directions (K, 3) and weights (K,) of a quadrature over the source disk, the weights
+    normalised by ``pi sin^2 alpha`` (so that ``sum w f cos`` is the source-averaged value
+    per unit normal irradiance)."""
+    if source_radius == 0.0:
+        return wi[None, :], np.ones(1)
+    alpha = np.radians(source_radius)
+    x, wx = np.polynomial.legendre.leggauss(n_r)
+    rho = 0.5 * alpha * (x + 1.0)
+    w_rho = 0.5 * alpha * wx * np.sin(rho)
+    psi = (np.arange(n_psi) + 0.5) * 2.0 * np.pi / n_psi
+    up = np.array([1.0, 0.0, 0.0]) if abs(wi[2]) > 0.99 else np.array([0.0, 0.0, 1.0])
+    u = np.cross(up, wi)
+    u /= np.linalg.norm(u)
+    v = np.cross(wi, u)
+    r, p = np.meshgrid(rho, psi, indexing="ij")
+    d = (np.cos(r)[..., None] * wi + np.sin(r)[..., None] * (
+        np.cos(p)[..., None] * u + np.sin(p)[..., None] * v))
+    w = np.repeat(w_rho, n_psi) * (2.0 * np.pi / n_psi) / (np.pi * np.sin(alpha) ** 2)
+    return d.reshape(-1, 3), w
+
+
+def film_weights() -> tuple[np.ndarray, np.ndarray]:
+    """Spectral variants: wavelengths (nm, 1 nm grid over Mitsuba's CIE range) and the (3, L)
+    weights that turn a spectrum sampled on them into the film's linear sRGB value (what
+    ``hdrfilm`` estimates: ``M_xyz->srgb int xyz(lambda) s(lambda) dlambda`` times Mitsuba's
+    CIE Y normalisation)."""
+    lam = np.arange(mi.MI_CIE_MIN, mi.MI_CIE_MAX + 0.5, 1.0)
+    xyz = np.array(mi.cie1931_xyz(mi.Float(lam)), dtype=np.float64) * mi.MI_CIE_Y_NORMALIZATION
+    m = np.array([np.array(mi.xyz_to_srgb(mi.Color3f(*[float(v) for v in e]))).ravel()
+                  for e in np.eye(3)]).T
+    return lam, m @ xyz
+
+
+def _eval_channels(bsdf, view: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """``bsdf.eval`` (f cos theta_light) for (K, 3) view and light directions: (K, C) in
+    RGB/mono variants, (K, 3) sRGB film values per unit spectrum in spectral variants."""
+    spectral = mi.is_spectral
+    if spectral:
+        lam, weights = film_weights()
+        n_lam = len(lam)
+        pad = (-n_lam) % 4
+        lam_p = np.concatenate([lam, np.full(pad, lam[-1])]).reshape(-1, 4)
+        k, g = view.shape[0], lam_p.shape[0]
+        view = np.repeat(view, g, axis=0)
+        light = np.repeat(light, g, axis=0)
+        lam_lanes = np.tile(lam_p, (k, 1))
+    si = dr.zeros(mi.SurfaceInteraction3f, view.shape[0])
+    si.wi = mi.Vector3f(*[view[:, j].astype(np.float32) for j in range(3)])
+    if spectral:
+        si.wavelengths = mi.UnpolarizedSpectrum(*[lam_lanes[:, j].astype(np.float32)
+                                                  for j in range(4)])
+    value = bsdf.eval(mi.BSDFContext(), si,
+                      mi.Vector3f(*[light[:, j].astype(np.float32) for j in range(3)]))
+    if mi.is_polarized:
+        value = mi.unpolarized_spectrum(value)
+    arr = np.array(value, dtype=np.float64)
+    arr = (arr[None, :] if arr.ndim == 1 else arr).T  # (lanes, channels)
+    if spectral:
+        spec = arr.reshape(k, g * 4)[:, :n_lam]
+        white = weights.sum(axis=1)
+        return (spec @ weights.T) / white
+    return arr
+
+
+def _analytic(bsdf, wo: np.ndarray, wi: np.ndarray, source_radius: float) -> np.ndarray:
+    """Analytic BRF (N, C) of the patch seen from ``wo`` lit from ``wi`` (one incidence)."""
+    nodes, weights = _disk_nodes(wi, source_radius)
+    out = []
+    for view in wo:
+        vals = _eval_channels(bsdf, np.repeat(view[None, :], len(nodes), axis=0), nodes)
+        out.append(np.pi * (weights[:, None] * vals).sum(axis=0) / wi[2])
+    return np.array(out)
+
+
+def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
+                 variant: str = "llvm_ad_rgb", spp: int = 64, resolution: int = 16,
+                 source_radius: float = 0.0, strategy: str = "emitter", seed: int = 0,
+                 measured: np.ndarray | None = None,
+                 progress=None) -> GonioResult:
+    """Render the patch at every geometry and measure its BRF on the image.
+
+    Args:
+        properties: ``powder`` plugin properties (``mi.load_dict`` form, without ``type``),
+            or a function of the wavelength (nm, mono variants) that returns them.
+        theta_i, theta_o, phi: geometries in degrees (MODEL.md convention: signed
+            ``theta_o``, light at azimuth 0), equal-length sequences.
+        wavelength: nm per geometry, mono variants only (the plugin's ``wavelength``);
+            default 700 nm.
+        variant: Mitsuba variant (``llvm_ad_rgb``, ``llvm_ad_spectral``, ``llvm_ad_mono``...).
+        spp: samples per pixel.
+        resolution: pixels per side of each geometry's image (``resolution**2`` independent
+            estimates).
+        source_radius: angular radius of the source, degrees, in [0, 10]; 0 is collimated.
+        strategy: ``emitter``, ``bsdf`` or ``mis`` (the last two need ``source_radius > 0``).
+        seed: sampler seed.
+        measured: measured BRF per geometry, carried into the result.
+        progress: called with a line of text after each incidence.
+
+    Returns:
+        :class:`GonioResult`.
+    """
+    _check(variant, spp, resolution, source_radius)
+    ti, to, ph = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in
+                  (theta_i, theta_o, phi))
+    if not (len(ti) == len(to) == len(ph)) or len(ti) == 0:
+        raise ValueError("theta_i, theta_o and phi must be non-empty and of equal length")
+    mono = "mono" in variant
+    if wavelength is None:
+        lam = np.full(len(ti), 700.0 if mono else np.nan)
+    else:
+        if not mono:
+            raise ValueError(f"wavelength applies to mono variants only (variant = "
+                             f"{variant!r}): RGB and spectral variants render every channel")
+        lam = np.broadcast_to(np.asarray(wavelength, dtype=np.float64), ti.shape).copy()
+    directional = source_radius == 0.0
+    integrator = _integrator(strategy, directional)
+    from .measurements import gonio_directions
+
+    wi_all, wo_all = gonio_directions(ti, to, ph)
+    channels = ["Y"] if mono else ["R", "G", "B"]
+    n_c = len(channels)
+    rendered = np.empty((len(ti), n_c))
+    stderr = np.empty((len(ti), n_c))
+    analytic = np.empty((len(ti), n_c))
+    seconds = 0.0
+    used: dict = {}
+    lam_key = np.nan_to_num(lam, nan=-1.0)  # NaN (no wavelength) != NaN in a set
+    keys = sorted(set(zip(lam_key.tolist(), ti.tolist(), strict=True)))
+    with use_variant(variant):
+        for lam_k, ti_k in keys:
+            idx = np.nonzero((ti == ti_k) & (lam_key == lam_k))[0]
+            props = dict(properties(lam_k) if callable(properties) else properties)
+            used[f"{lam_k:g}" if mono else "all"] = dict(props)
+            if mono:
+                props["wavelength"] = float(lam_k)
+            wi = wi_all[idx[0]]
+            scene = mi.load_dict({
+                "type": "scene", "integrator": integrator, "patch": patch_dict(props),
+                **source_dict(wi, source_radius),
+                "sensor": {"type": "batch", "film": _film(resolution * len(idx), resolution),
+                           "sampler": {"type": "independent", "sample_count": spp},
+                           **{f"s{j}": _sensor(wo_all[i], resolution, spp)
+                              for j, i in enumerate(idx)}},
+            })
+            start = time.perf_counter()
+            image = mi.render(scene, seed=seed)
+            dr.sync_thread()
+            img = np.array(image, dtype=np.float64)
+            seconds += time.perf_counter() - start
+            pix = img.reshape(resolution, len(idx), resolution, -1)[..., :n_c]
+            pix = np.moveaxis(pix, 1, 0).reshape(len(idx), resolution * resolution, n_c)
+            # irradiance 1 normal to the beam; in spectral variants the film sees it as the
+            # sRGB value of a unit spectrum
+            white = film_weights()[1].sum(axis=1) if mi.is_spectral else np.ones(3)
+            scale = np.pi / wi[2] / white[:pix.shape[2]]
+            rendered[idx] = scale * pix.mean(axis=1)
+            stderr[idx] = scale * pix.std(axis=1, ddof=1) / np.sqrt(pix.shape[1])
+            bsdf = next(s.bsdf() for s in scene.shapes() if s.id() == "patch")
+            analytic[idx] = _analytic(bsdf, wo_all[idx], wi, source_radius)
+            if progress is not None:
+                where = f"{lam_k:g} nm, " if mono else ""
+                progress(f"{where}theta_i {ti_k:g}: {len(idx)} geometries rendered")
+    return GonioResult(ti, to, ph, lam, channels, rendered, stderr, analytic,
+                       None if measured is None else np.asarray(measured, dtype=np.float64),
+                       variant, spp, resolution, source_radius, strategy, seconds,
+                       used["all"] if "all" in used else used)
+
+
+def render_measurements(properties, data: Measurements, **kwargs) -> GonioResult:
+    """:func:`render_gonio` at the geometries and wavelengths of a measurement file (mono
+    variant; the default ``llvm_ad_mono``), carrying the measured BRF into the result."""
+    kwargs.setdefault("variant", "llvm_ad_mono")
+    if "mono" not in kwargs["variant"]:
+        raise ValueError(f"variant = {kwargs['variant']!r}: comparing with measurements "
+                         "needs a mono variant (the plugin renders at each measured "
+                         "wavelength), e.g. llvm_ad_mono")
+    return render_gonio(properties, data.theta_i, data.theta_o, data.phi,
+                        wavelength=data.wavelength, measured=data.brf, **kwargs)
