@@ -156,3 +156,19 @@ def test_cli_compare(tmp_path, capsys):
     assert main(["compare", str(tmp_path / "render.exr"), str(tmp_path / "photo.png"),
                  "--chart", "1,2 3,4", "--out", str(out)]) == 2
     assert "--chart '1,2 3,4'" in capsys.readouterr().err
+
+
+def test_clipped_photo_pixels_are_left_out(tmp_path):
+    """An over-exposed 8-bit photo: with the clipped pixels in, the gains are biased; left
+    out (saturation 0.99), the exposure and white balance are recovered."""
+    render = smooth_image() * 1.5
+    gains = np.array([1.1, 1.0, 0.8]) * 2.0**0.4
+    write_png(tmp_path / "photo.png", render * gains, 8)
+    photo = P.read_image(tmp_path / "photo.png")
+    assert np.any(photo >= 0.999)
+    biased, _, _ = P.compare_images(render, photo, white=1.5)
+    assert abs(biased.exposure_stops + 0.4) > 0.02
+    stats, _, _ = P.compare_images(render, photo, white=1.5, saturation=0.99)
+    assert stats.saturated_pixels > 100
+    np.testing.assert_allclose(stats.gains, 1.0 / gains, rtol=0.01)
+    assert stats.mean < 0.5

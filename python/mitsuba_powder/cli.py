@@ -20,15 +20,25 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
+    from .params import load_properties
     from .render import render_scene
 
+    overrides = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
+    props = (load_properties(args.params, None, overrides)
+             if args.params or overrides else None)
     result = render_scene(
         args.scene,
         args.output,
         variant=args.variant,
         spp=args.spp,
         defines=dict(_parse_define(d) for d in args.define),
+        properties=props,
     )
+    if result.applied:
+        print(f"set on every powder BSDF: {', '.join(result.applied)}")
+    if result.not_applied:
+        print(f"NOT applied (not changeable after loading, or absent from this scene; set "
+              f"them in the scene file): {', '.join(result.not_applied)}")
     print(
         f"wrote {result.output} ({result.width}x{result.height}, {result.spp} spp, "
         f"variant {result.variant}, {result.seconds:.2f} s)"
@@ -181,6 +191,10 @@ def _cmd_render_gonio(args: argparse.Namespace) -> int:
         if args.protocol:
             raise ValueError("give --data or --protocol, not both")
         data = load_measurements(args.data)
+        if args.wavelength is not None:
+            data = data.subset(data.wavelength == args.wavelength)
+            if not len(data):
+                raise ValueError(f"--wavelength {args.wavelength:g}: not in {args.data}")
         props = lambda lam: load_properties(args.params, lam, overrides)  # noqa: E731
         result = render_measurements(props, data, variant=args.variant or "llvm_ad_mono",
                                      **kwargs)
@@ -227,7 +241,9 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
             raise ValueError(f"--region {args.region!r}: expected x0,y0,x1,y1 in pixels")
     stats, aligned, de = compare_images(
         render, photo, corners=_corners(args.chart) if args.chart else None,
-        chart_half=args.chart_window, align_mode=args.align, region=region, white=args.white)
+        chart_half=args.chart_window, align_mode=args.align, region=region, white=args.white,
+        saturation=(None if args.saturation < 0 else args.saturation) if args.saturation
+        is not None else (None if args.photo.lower().endswith(".exr") else 0.99))
     path = write_report(args.out, stats, render, aligned, de)
     if stats.chart_delta_e_mean is not None:
         print(f"ColorChecker calibration: patches Delta E 2000 mean "
@@ -235,6 +251,8 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
     wb = ", ".join(f"{v:.3f}" for v in stats.white_balance)
     print(f"alignment ({args.align}): exposure {stats.exposure_stops:+.3f} stops, "
           f"white balance (R/G, 1, B/G) = ({wb})")
+    if stats.saturated_pixels:
+        print(f"left out {stats.saturated_pixels} clipped photo pixels")
     print(f"CIEDE2000 over {stats.pixels} pixels: mean {stats.mean:.2f}, median "
           f"{stats.median:.2f}, p95 {stats.p95:.2f}, max {stats.max:.2f}")
     print(f"wrote {path}, delta_e.png and side_by_side.png")
@@ -267,6 +285,10 @@ def build_parser() -> argparse.ArgumentParser:
         "-D", "--define", action="append", default=[], metavar="NAME=VALUE",
         help="set a scene parameter declared with <default name=...> (repeatable)",
     )
+    p.add_argument("--params", default=None,
+                   help="JSON of powder properties or a fit.json, set on every powder BSDF")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a powder property set on every powder BSDF (repeatable)")
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("colour", help="albedo, tau_o and colour of a powder from its grains")
@@ -330,7 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", default=None,
                    help="Mitsuba variant (default llvm_ad_rgb; llvm_ad_mono with --data)")
     p.add_argument("--wavelength", type=float, default=None,
-                   help="nm, mono variants with --protocol (default 700)")
+                   help="nm: with --protocol, the mono variants' wavelength (default 700); "
+                        "with --data, render only that wavelength's rows")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel")
     p.add_argument("--resolution", type=int, default=16, help="pixels per side per geometry")
     p.add_argument("--source-radius", type=float, default=0.0,
@@ -356,6 +379,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--region", default=None, help="x0,y0,x1,y1: pixels to compare")
     p.add_argument("--white", type=float, default=None,
                    help="linear level of L* = 100 (default: the render's 99th percentile)")
+    p.add_argument("--saturation", type=float, default=None,
+                   help="leave out photo pixels with a channel >= this linear value (default "
+                        "0.99 for PNG/JPEG, none for EXR; negative: keep all)")
     p.add_argument("--out", default="compare_out", help="output folder")
     p.set_defaults(func=_cmd_compare_photo)
     return parser

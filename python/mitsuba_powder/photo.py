@@ -218,13 +218,15 @@ class Comparison:
     exposure_stops: float
     white_balance: list[float]
     white: float
+    saturated_pixels: int = 0
     chart_matrix: list[list[float]] | None = None
     chart_delta_e_mean: float | None = None
     chart_delta_e_max: float | None = None
 
 
 def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart_half: int = 3,
-                   align_mode: str = "white-balance", region=None, white: float | None = None
+                   align_mode: str = "white-balance", region=None, white: float | None = None,
+                   saturation: float | None = None
                    ) -> tuple[Comparison, np.ndarray, np.ndarray]:
     """Compare linear RGB images of the same size.
 
@@ -236,6 +238,9 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
         align_mode: ``none``, ``exposure`` or ``white-balance``.
         region: ``(x0, y0, x1, y1)`` pixels to compare (default: the whole image).
         white: linear level of L* = 100; default the render's 99th percentile of luminance.
+        saturation: photo pixels with a channel at or above this linear value (before
+            calibration) are clipped and left out of the alignment and the statistics (e.g.
+            0.99 for 8/16-bit photos); ``None`` keeps every pixel.
 
     Returns:
         (:class:`Comparison`, the aligned photo, the CIEDE2000 map (NaN outside the region)).
@@ -255,6 +260,13 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
                              f"{w}, 0 <= y0 < y1 <= {h}")
         mask[y0:y1, x0:x1] = True
     mask &= np.all(np.isfinite(render), axis=2) & np.all(np.isfinite(photo), axis=2)
+    saturated = 0
+    if saturation is not None:
+        clipped = np.any(photo >= saturation, axis=2) & mask
+        saturated = int(clipped.sum())
+        mask &= ~clipped
+        if not mask.any():
+            raise ValueError(f"saturation = {saturation}: every compared photo pixel is clipped")
     matrix = chart_de = None
     if corners is not None:
         photo, matrix, chart_de = calibrate_with_chart(photo, corners, chart_half)
@@ -272,7 +284,7 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
         p95=float(np.percentile(vals, 95)), max=float(vals.max()), pixels=int(vals.size),
         gains=[float(g) for g in gains], exposure_stops=float(np.log2(gains[1])),
         white_balance=[float(gains[0] / gains[1]), 1.0, float(gains[2] / gains[1])],
-        white=float(white),
+        white=float(white), saturated_pixels=saturated,
         chart_matrix=None if matrix is None else np.asarray(matrix).tolist(),
         chart_delta_e_mean=None if chart_de is None else float(np.mean(chart_de)),
         chart_delta_e_max=None if chart_de is None else float(np.max(chart_de)))

@@ -6,6 +6,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import drjit as dr
 import mitsuba as mi
 
 
@@ -27,6 +28,45 @@ class RenderResult:
     spp: int | None
     variant: str
     seconds: float
+    applied: tuple[str, ...] = ()
+    not_applied: tuple[str, ...] = ()
+
+
+def apply_properties(scene, properties: dict) -> tuple[list[str], list[str]]:
+    """Set ``properties`` on every ``powder`` BSDF of a loaded scene through ``mi.traverse``.
+
+    Only differentiable parameters can change after loading (``amplitude_volume``, ``g``,
+    ``extinction``, ``thickness``, ``amplitude_surface``, ``correlation_length``, ``sigma``,
+    ``tau_o`` and ``albedo`` when the scene gives them, ``radius`` when it does not); the
+    others (``material``, ``eta``, ``lobes``...) belong in the scene file.
+
+    Returns:
+        (names applied, names not applied).
+
+    Raises:
+        ValueError: the scene has no ``powder`` BSDF.
+    """
+    params = mi.traverse(scene)
+    keys = list(params.keys())
+    prefixes = sorted({k[: -len(".extinction")] for k in keys if k.endswith(".extinction")})
+    if not prefixes:
+        raise ValueError("the scene has no powder BSDF to apply --params to")
+    applied, missing = [], []
+    for name, value in properties.items():
+        hits = [k for p in prefixes for k in (f"{p}.{name}", f"{p}.{name}.value")
+                if k in params]
+        if not hits:
+            missing.append(name)
+            continue
+        for key in hits:
+            current = params[key]
+            if isinstance(value, (list, tuple)):
+                params[key] = type(current)(*[float(v) for v in value])
+            else:
+                params[key] = type(current)(float(value))
+        applied.append(name)
+    params.update()
+    return applied, missing
 
 
 def render_scene(
@@ -35,6 +75,7 @@ def render_scene(
     variant: str = "scalar_rgb",
     spp: int | None = None,
     defines: dict[str, str] | None = None,
+    properties: dict | None = None,
 ) -> RenderResult:
     """Render ``scene`` in ``variant`` and write ``output`` (.exr: linear; .png: sRGB 8 bit).
 
@@ -44,6 +85,8 @@ def render_scene(
         variant: Mitsuba variant, e.g. ``scalar_rgb``, ``llvm_ad_rgb``, ``scalar_spectral``.
         spp: samples per pixel, overriding the scene's sampler.
         defines: values for the scene's ``<default name=...>`` parameters.
+        properties: powder properties set on every powder BSDF after loading (see
+            :func:`apply_properties`), e.g. from a ``fit.json``.
 
     Raises:
         FileNotFoundError: the scene file does not exist.
@@ -66,9 +109,13 @@ def render_scene(
     register()
     start = time.perf_counter()
     loaded = mi.load_file(str(scene), **(defines or {}))
+    applied, missing = apply_properties(loaded, properties) if properties else ([], [])
     image = mi.render(loaded, spp=spp or 0)
+    dr.eval(image)  # kernels run asynchronously: wait for them before stopping the clock
+    dr.sync_thread()
     seconds = time.perf_counter() - start
     output.parent.mkdir(parents=True, exist_ok=True)
     mi.util.write_bitmap(str(output), image, write_async=False)
     height, width = image.shape[0], image.shape[1]
-    return RenderResult(output, width, height, spp, variant, seconds)
+    return RenderResult(output, width, height, spp, variant, seconds, tuple(applied),
+                        tuple(missing))
