@@ -27,6 +27,7 @@ CASES = [
     ("sigma", -0.1, ['"sigma"', "= -0.1", "(0, 1.5708]"]),
     ("wavelength", -700.0, ['"wavelength"', "= -700", "(0, inf)"]),
     ("specular", "phong", ['"specular"', '"phong"', "harvey_shack", "gaussian"]),
+    ("sampling", "uniform", ['"sampling"', '"uniform"', "lobes", "cosine"]),
     ("lobes", "single,glossy", ['"lobes"', '"glossy"', "single, multiple, coherent, surface"]),
     ("lobes", " , ", ['"lobes"', "names no lobe"]),
     ("rgb_wavelengths", "611, 549", ['"rgb_wavelengths"', "exactly 3", "got 2"]),

@@ -111,6 +111,8 @@ CONFIGS = [
     ("gaussian_85", {"albedo": 0.5, "amplitude_surface": 1.0, "specular": "gaussian",
                      "sigma": 0.2}, 85.0, None),
     ("all_lobes_85", {"albedo": 0.9, "extinction": 0.5, "amplitude_surface": 1e-3}, 85.0, None),
+    ("cosine_only_30", {"albedo": 0.9, "extinction": 0.5, "amplitude_surface": 1e-3,
+                        "sampling": "cosine"}, 30.0, None),
 ]
 
 

@@ -83,6 +83,12 @@ Dry powder (:monosp:`powder`)
    - Comma-separated subset of ``single, multiple, coherent, surface``, or ``all``
      (Default: ``all``). Terms not listed are never evaluated.
 
+ * - sampling
+   - |string|
+   - Importance sampling: ``lobes`` (Default: a mixture of the cosine lobe, the
+     coherent cone and the surface lobe) or ``cosine`` (cosine-weighted only; for
+     measuring what the lobes gain, see docs/benchmarks.md)
+
  * - wavelength
    - |float|
    - Wavelength in nm at which mono variants evaluate the model (Default: 700)
@@ -153,6 +159,15 @@ public:
                   "values are \"harvey_shack\" and \"gaussian\"", specular);
 
         parse_lobes(props.get<std::string>("lobes", "all"));
+
+        std::string sampling = props.get<std::string>("sampling", "lobes");
+        if (sampling == "lobes")
+            m_cosine_only = false;
+        else if (sampling == "cosine")
+            m_cosine_only = true;
+        else
+            Throw("powder: property \"sampling\" = \"%s\" is not valid; valid "
+                  "values are \"lobes\" and \"cosine\"", sampling);
 
         m_wavelength = (ScalarFloat) read_scalar(props, "wavelength", 700.0, 0.0,
                                                  Inf, false, false);
@@ -434,6 +449,7 @@ public:
         else
             oss << "  sigma = " << string::indent(m_sigma) << " [rad]," << std::endl;
         oss << "  lobes = \"" << lobes_string() << "\"," << std::endl
+            << "  sampling = " << (m_cosine_only ? "cosine" : "lobes") << "," << std::endl
             << "  wavelength = " << m_wavelength << " [nm] (mono)," << std::endl
             << "  rgb_wavelengths = " << m_rgb_wavelengths[0] << ", "
             << m_rgb_wavelengths[1] << ", " << m_rgb_wavelengths[2] << " [nm] (rgb)" << std::endl
@@ -883,8 +899,9 @@ private:
         Mask positive = total > 0.f;
         Float inv_total = dr::select(positive, dr::rcp(total), 0.f);
         LobeWeights w;
-        w.coherent = lobes.coherent ? Float(.1f + .7f * e_coherent * inv_total) : Float(0.f);
-        w.surface = lobes.surface
+        w.coherent = lobes.coherent && !m_cosine_only
+            ? Float(.1f + .7f * e_coherent * inv_total) : Float(0.f);
+        w.surface = lobes.surface && !m_cosine_only
             ? dr::select(as > 0.f, .1f + .7f * e_surface * inv_total, 0.f) : Float(0.f);
         w.width_coherent = width_c;
         w.width_surface = width_s;
@@ -1095,6 +1112,7 @@ private:
     FloatStorage m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
         m_qsca2_table;
     SpecularModel m_specular;
+    bool m_cosine_only = false;
     bool m_single, m_multiple, m_coherent, m_surface;
     bool m_finite_thickness = false;
     uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
