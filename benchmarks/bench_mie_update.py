@@ -12,28 +12,13 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-OUT = Path(__file__).resolve().parent / "results"
-
-
-def timeit(fn, repeat: int) -> float:
-    """Median wall time of fn() in seconds (after one warm-up call). Dr.Jit launches kernels
-    asynchronously: the clock stops after dr.sync_thread()."""
-    fn()
-    dr.sync_thread()
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        dr.sync_thread()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+from _common import OUT, timeit
 
 
 def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:

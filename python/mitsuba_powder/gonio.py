@@ -27,7 +27,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .measurements import Measurements
+from .measurements import Measurements, gonio_directions
 from .model import variant as use_variant
 
 SOURCE_DISTANCE = 1.0e4  # scene units; the visible patch is ~3 units wide
@@ -178,6 +178,17 @@ def patch_dict(properties: dict) -> dict:
             "bsdf": {"type": "powder", **properties}}
 
 
+def gonio_scene_dict(properties: dict, theta_i: float, theta_o: float, phi: float, *,
+                     source_radius: float = 0.0, strategy: str = "emitter",
+                     resolution: int = 16, spp: int = 64) -> dict:
+    """Scene dict of the virtual goniometer at one geometry (degrees): what
+    :func:`render_gonio` renders, with a plain orthographic sensor instead of a batch."""
+    wi, wo = (v[0] for v in gonio_directions(theta_i, theta_o, phi))
+    return {"type": "scene", "integrator": _integrator(strategy, source_radius == 0.0),
+            "patch": patch_dict(properties), **source_dict(wi, source_radius),
+            "sensor": _sensor(wo, resolution, spp)}
+
+
 def _check(variant: str, spp: int, resolution: int, source_radius: float) -> None:
     if variant not in mi.variants():
         raise ValueError(f"variant = {variant!r} is not available; choose one of "
@@ -310,8 +321,6 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
         lam = np.broadcast_to(np.asarray(wavelength, dtype=np.float64), ti.shape).copy()
     directional = source_radius == 0.0
     integrator = _integrator(strategy, directional)
-    from .measurements import gonio_directions
-
     wi_all, wo_all = gonio_directions(ti, to, ph)
     channels = ["Y"] if mono else ["R", "G", "B"]
     n_c = len(channels)

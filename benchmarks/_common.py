@@ -1,0 +1,77 @@
+"""Shared helpers of the benchmark scripts: timing, machine description, result files."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import drjit as dr
+import numpy as np
+
+OUT = Path(__file__).resolve().parent / "results"
+
+
+def timeit(fn, repeat: int, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in seconds after ``warmup`` calls (kernel compilation).
+    Dr.Jit launches kernels asynchronously: the clock stops after ``dr.sync_thread()``."""
+    for _ in range(warmup):
+        fn()
+        dr.sync_thread()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        dr.sync_thread()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def machine() -> dict:
+    """What the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import mitsuba as mi
+
+    return {"cpu": cpu, "cpus": os.cpu_count(), "python": platform.python_version(),
+            "mitsuba": mi.__version__, "drjit": dr.__version__,
+            "date": time.strftime("%Y-%m-%d")}
+
+
+def save(out: Path, name: str, rows: list[dict], quick: bool, **extra) -> Path:
+    """Write ``out/name.json`` with the machine, the mode and the raw rows."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.json"
+    path.write_text(json.dumps({"meta": {**machine(), "quick": quick, **extra}, "rows": rows},
+                               indent=1))
+    return path
+
+
+def pyplot():
+    """matplotlib.pyplot with a non-interactive backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def print_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> None:
+    """Print ``rows`` as a fixed-width table; ``columns`` = (key, header, format)."""
+    widths = [max(len(h), 10) for _, h, _ in columns]
+    print("  ".join(f"{h:>{w}s}" for (_, h, _), w in zip(columns, widths, strict=True)))
+    for r in rows:
+        cells = []
+        for (key, _, fmt), w in zip(columns, widths, strict=True):
+            v = r.get(key)
+            cells.append(f"{'-' if v is None else format(v, fmt):>{w}s}")
+        print("  ".join(cells))

@@ -1,0 +1,174 @@
+"""BSDF throughput: powder (all lobes, each lobe alone, Gaussian specular, Mie albedo) against
+Mitsuba's diffuse, roughplastic and principled.
+
+Per variant and BSDF: eval, sample and eval_pdf calls per second, and eval + backward
+(gradient of the sum of the values with respect to one parameter). JIT variants: one call over
+N random direction pairs (kernel compiled in a warm-up call, then the median of the repeats;
+the time includes Python tracing of the call). scalar_rgb: a Python loop of single calls, so
+its numbers include the binding overhead of each call (the same for every BSDF).
+Prints a table, writes benchmarks/results/bsdf.json and bsdf.png.
+Run:  python benchmarks/bench_bsdf.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from _common import OUT, print_table, pyplot, save, timeit
+
+BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
+BSDFS = {
+    "powder": BASE,
+    "powder single": {**BASE, "lobes": "single"},
+    "powder multiple": {**BASE, "lobes": "multiple"},
+    "powder coherent": {**BASE, "lobes": "coherent"},
+    "powder surface": {**BASE, "lobes": "surface"},
+    "powder gaussian": {**BASE, "specular": "gaussian", "amplitude_surface": 0.5,
+                        "sigma": 0.1},
+    "powder Mie albedo": {"type": "powder", "radius": 0.05, "extinction": 1.0,
+                          "amplitude_surface": 1e-3},
+    "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}},
+    "roughplastic": {"type": "roughplastic"},
+    "principled": {"type": "principled"},
+}
+#: parameter whose gradient the eval + backward benchmark computes
+GRAD_KEY = {"diffuse": "reflectance.value", "roughplastic": "diffuse_reflectance.value",
+            "principled": "base_color.value"}
+
+
+def directions(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    mu = rng.uniform(0.05, 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - mu**2)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), mu], axis=1).astype(np.float32)
+
+
+def bench_jit(name: str, props: dict, n: int, repeat: int, backward: bool = True) -> dict:
+    bsdf = mi.load_dict(props)
+    wi, wo = directions(n, 1), directions(n, 2)
+    rng = np.random.default_rng(3)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2])
+    if mi.is_spectral:
+        si.wavelengths = mi.UnpolarizedSpectrum(*rng.uniform(360, 830, (4, n)).astype(
+            np.float32))
+    w = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
+    s1 = mi.Float(rng.uniform(size=n).astype(np.float32))
+    s2 = mi.Point2f(*rng.uniform(size=(2, n)).astype(np.float32))
+    dr.eval(si, w, s1, s2)
+    ctx = mi.BSDFContext()
+    params = mi.traverse(bsdf) if backward else None
+    key = GRAD_KEY.get(name.split()[0],
+                       "amplitude_surface" if name.endswith("surface") else "amplitude_volume")
+
+    def run_eval():
+        dr.eval(bsdf.eval(ctx, si, w))
+
+    def run_sample():
+        bs, weight = bsdf.sample(ctx, si, s1, s2)
+        dr.eval(bs.wo, bs.pdf, weight)
+
+    def run_eval_pdf():
+        dr.eval(*bsdf.eval_pdf(ctx, si, w))
+
+    def run_backward():
+        dr.enable_grad(params[key])
+        params.update()
+        value = mi.unpolarized_spectrum(bsdf.eval(ctx, si, w))
+        dr.backward(dr.sum(dr.sum(value)))
+        dr.eval(dr.grad(params[key]))
+        dr.disable_grad(params[key])
+
+    out = {"eval_backward": None}
+    ops = [("eval", run_eval), ("sample", run_sample), ("eval_pdf", run_eval_pdf)]
+    for op, fn in ops + ([("eval_backward", run_backward)] if backward else []):
+        out[op] = n / timeit(fn, repeat) / 1e6
+    return out
+
+
+def bench_scalar(props: dict, n: int) -> dict:
+    bsdf = mi.load_dict(props)
+    wi, wo = directions(n, 1), directions(n, 2)
+    rng = np.random.default_rng(3)
+    sis = []
+    for k in range(n):
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(*wi[k])
+        sis.append(si)
+    ws = [mi.Vector3f(*v) for v in wo]
+    s1 = rng.uniform(size=n).tolist()
+    s2 = [mi.Point2f(*p) for p in rng.uniform(size=(n, 2)).tolist()]
+    ctx = mi.BSDFContext()
+    ops = {"eval": lambda k: bsdf.eval(ctx, sis[k], ws[k]),
+           "sample": lambda k: bsdf.sample(ctx, sis[k], s1[k], s2[k]),
+           "eval_pdf": lambda k: bsdf.eval_pdf(ctx, sis[k], ws[k])}
+    out = {"eval_backward": None}
+    for op, fn in ops.items():
+        best = np.inf
+        for _ in range(3):
+            t = time.perf_counter()
+            for k in range(n):
+                fn(k)
+            best = min(best, time.perf_counter() - t)
+        out[op] = n / best / 1e6
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
+    parser.add_argument("--out", type=Path, default=OUT)
+    args = parser.parse_args()
+    n_jit = 1024 if args.quick else 1 << 21
+    n_scalar = 200 if args.quick else 20_000
+    repeat = 2 if args.quick else 9
+    variants = ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
+    rows = []
+    for variant in variants:
+        mi.set_variant(variant)
+        import mitsuba_powder
+
+        mitsuba_powder.register()
+        for name, props in BSDFS.items():
+            if variant.startswith("scalar"):
+                r = bench_scalar(props, n_scalar)
+            else:
+                r = bench_jit(name, props, n_jit, repeat)
+            rows.append({"variant": variant, "bsdf": name, **r})
+        diffuse = next(r for r in rows if r["variant"] == variant and r["bsdf"] == "diffuse")
+        for r in rows:
+            if r["variant"] == variant:
+                r["eval_cost_vs_diffuse"] = diffuse["eval"] / r["eval"]
+                r["sample_cost_vs_diffuse"] = diffuse["sample"] / r["sample"]
+    print(f"throughput in millions of calls per second; JIT: {n_jit} pairs per call; "
+          f"scalar: {n_scalar} Python-level calls")
+    print_table(rows, [("variant", "variant", "s"), ("bsdf", "bsdf", "s"),
+                       ("eval", "eval M/s", ".3f"), ("sample", "sample M/s", ".3f"),
+                       ("eval_pdf", "eval_pdf M/s", ".3f"),
+                       ("eval_backward", "eval+bwd M/s", ".3f"),
+                       ("eval_cost_vs_diffuse", "eval cost/diffuse", ".2f"),
+                       ("sample_cost_vs_diffuse", "sample cost/diffuse", ".2f")])
+    save(args.out, "bsdf", rows, args.quick, jit_pairs=n_jit, scalar_calls=n_scalar)
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(variants), figsize=(4 * len(variants), 3.8), sharey=False)
+    for ax, variant in zip(axes, variants, strict=True):
+        sel = [r for r in rows if r["variant"] == variant]
+        ax.barh([r["bsdf"] for r in sel], [r["eval"] for r in sel], color=[
+            "tab:orange" if r["bsdf"].startswith("powder") else "tab:gray" for r in sel])
+        ax.set_title(variant, fontsize=9)
+        ax.set_xlabel("eval, M calls/s")
+        ax.invert_yaxis()
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    fig.savefig(args.out / "bsdf.png", dpi=100)
+
+
+if __name__ == "__main__":
+    main()
