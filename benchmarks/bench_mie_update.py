@@ -70,6 +70,23 @@ def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:
             "update_ad_over_eval_backward": t_update_ad / t_step}
 
 
+def construction(variant: str, repeat: int) -> dict:
+    """Time of mi.load_dict of a powder whose albedo comes from Mie theory, with tau_o given
+    and with tau_o from Fresnel (computed once per wavelength of the table at construction:
+    eta is not a differentiable parameter, so no update recomputes it)."""
+    mi.set_variant(variant)
+    import mitsuba_powder
+
+    mitsuba_powder.register()
+    out = {"variant": variant}
+    for label, extra in (("tau_given", {"tau_o": 0.6667}), ("tau_fresnel", {})):
+        out[f"load_{label}_s"] = timeit(
+            lambda extra=extra: mi.load_dict({"type": "powder", "radius": 0.3, **extra}),
+            repeat)
+    out["fresnel_s"] = out["load_tau_fresnel_s"] - out["load_tau_given_s"]
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
@@ -80,6 +97,7 @@ def main() -> None:
     dirs = [213] if args.quick else [213, 10_000, 1_000_000]
     repeat = 2 if args.quick else 15
     rows = [bench(v, r, n, repeat) for v in variants for r in radii for n in dirs]
+    loads = [construction(v, repeat) for v in variants]
     header = (f"{'variant':18s} {'radius um':>9s} {'dirs':>8s} {'update ms':>10s} "
               f"{'update+AD ms':>12s} {'eval+bwd ms':>11s} {'ratio':>6s}")
     print(header)
@@ -88,10 +106,16 @@ def main() -> None:
               f"{1e3 * r['update_s']:10.3f} {1e3 * r['update_ad_s']:12.3f} "
               f"{1e3 * r['eval_backward_s']:11.3f} {r['update_ad_over_eval_backward']:6.2f}")
     print("ratio = (update with radius tangents) / (eval + backward over the pairs)")
+    print(f"{'variant':18s} {'load, tau_o given ms':>21s} {'load, Fresnel ms':>17s} "
+          f"{'Fresnel ms':>11s}")
+    for r in loads:
+        print(f"{r['variant']:18s} {1e3 * r['load_tau_given_s']:21.3f} "
+              f"{1e3 * r['load_tau_fresnel_s']:17.3f} {1e3 * r['fresnel_s']:11.3f}")
     args.out.mkdir(parents=True, exist_ok=True)
     meta = {"machine": platform.processor() or platform.machine(), "cpus": __import__(
         "os").cpu_count(), "python": platform.python_version(), "quick": args.quick}
-    (args.out / "mie_update.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    (args.out / "mie_update.json").write_text(json.dumps({"meta": meta, "rows": rows,
+                                                             "construction": loads}, indent=1))
     import matplotlib
 
     matplotlib.use("Agg")

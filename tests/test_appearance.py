@@ -100,12 +100,3 @@ def test_figure_script_runs_in_quick_mode(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "figures" / "hematite_colour_vs_radius.png").stat().st_size > 10_000
     assert "| one | 0.01 |" in (tmp_path / "hematite_colour_table.md").read_text()
-
-
-def test_benchmark_runs_in_quick_mode(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_mie_update.py"),
-                           "--quick", "--out", str(tmp_path)], capture_output=True,
-                          text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr
-    assert "update+AD ms" in proc.stdout
-    assert (tmp_path / "mie_update.json").is_file() and (tmp_path / "mie_update.png").is_file()

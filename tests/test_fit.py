@@ -281,13 +281,12 @@ def test_predict_requires_fitted_wavelengths():
     assert isinstance(PowderBRF(data, {"radius": 0.05}).brf(), np.ndarray)
 
 
-def test_ptfe_script_and_fit_benchmark_run_in_quick_mode(tmp_path):
+def test_ptfe_script_runs_in_quick_mode(tmp_path):
     import subprocess
     import sys
 
-    for script in ("docs/scripts/ptfe_fits.py", "benchmarks/bench_fit.py"):
+    for script in ("docs/scripts/ptfe_fits.py",):
         proc = subprocess.run([sys.executable, str(ROOT / script), "--quick", "--out",
                                str(tmp_path)], capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stderr
     assert "| 532 | 1824 |" in (tmp_path / "ptfe_fits.md").read_text()
-    assert (tmp_path / "fit.json").is_file()

@@ -11,6 +11,7 @@ import argparse
 import platform
 import time
 from pathlib import Path
+from statistics import NormalDist
 
 import numpy as np
 
@@ -44,17 +45,20 @@ def main() -> None:
              f" each rendered on {res} x {res} pixels at {spp} spp (every pixel an independent"
              " estimate; the standard error is the pixels' spread / sqrt(pixels)).", "",
              "| variant | source | sampling | values (geometries x channels) | max abs z | "
-             "beyond 3 sigma | expected if Gaussian | median rel. std. error | render s |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "values beyond 3 sigma | geometries beyond 3 sigma | expected values if Gaussian"
+             " | Bonferroni 5 % threshold | median rel. std. error | render s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     notes = []
     for k, (variant, radius, strategy) in enumerate(runs):
         r = render_gonio(PROPS, ti, to, ph, variant=variant, spp=spp, resolution=res,
                          source_radius=radius, strategy=strategy, seed=k)
         s = r.summary()
         source = "collimated" if radius == 0 else f"disk, {radius:g} deg radius"
+        geoms = int(np.sum(~r.agrees().all(axis=1)))
+        bonf = NormalDist().inv_cdf(1 - 0.025 / s["values"])
         lines.append(f"| {variant} | {source} | {strategy} | {s['values']} | "
-                     f"{s['max_abs_z']:.2f} | {s['beyond_3_sigma']} | "
-                     f"{s['expected_beyond_3_sigma_if_gaussian']} | "
+                     f"{s['max_abs_z']:.2f} | {s['beyond_3_sigma']} | {geoms} | "
+                     f"{s['expected_beyond_3_sigma_if_gaussian']} | {bonf:.2f} | "
                      f"{s['median_relative_stderr']:.1e} | {r.seconds:.1f} |")
         print(lines[-1], flush=True)
         worst = np.unravel_index(np.argmax(np.abs(r.z())), r.z().shape)
@@ -63,24 +67,31 @@ def main() -> None:
                      f"({r.channels[worst[1]]})")
         if not args.quick:
             plot_gonio(out / "figures" / f"gonio_{variant}_{strategy}_{radius:g}.png", r)
-    lines += ["", "Where the largest deviations are:", ""] + [f"- {n}" for n in notes]
-    # is the standard error calibrated, and is there a bias? repeat one run with new seeds
-    bti, bto, bph = protocol_geometries("backscatter")
-    reps = 4 if args.quick else 24
-    runs_r = [render_gonio(PROPS, bti, bto, bph, variant="llvm_ad_spectral", spp=spp,
-                           resolution=res, seed=100 + s) for s in range(reps)]
-    vals = np.array([r.rendered for r in runs_r])
-    pred = np.array([r.stderr for r in runs_r]).mean(axis=0)
-    spread = vals.std(axis=0, ddof=1)
-    zbar = (vals.mean(axis=0) - runs_r[0].analytic) / (spread / np.sqrt(reps))
-    lines += ["", f"Calibration check (llvm_ad_spectral, back-scattering protocol, {reps} seeds):"
-              f" the spread of the {reps} estimates over the predicted standard error is "
-              + ", ".join(f"{v:.3f}" for v in np.median(spread / pred, axis=0))
-              + " (R, G, B; median over geometries; 1 = calibrated), and the mean of the "
-              f"{reps} estimates differs from the analytic BRF by a median "
-              + ", ".join(f"{v:.2f}" for v in np.median(np.abs(zbar), axis=0))
-              + " standard errors of that mean (0.67 expected without bias), max "
-              f"{np.abs(zbar).max():.2f}."]
+    lines += ["", "Reading the table: with a collimated source, RGB renders have no Monte Carlo "
+              "variance at all (every sample is f E cos), so they agree with the analytic BRF "
+              "to float32 rounding (|z| uses a 1e-5 relative floor). The 1-degree source makes "
+              "emitter sampling and MIS real Monte Carlo estimates, and spectral renders are "
+              "Monte Carlo in wavelength. The three channels of a geometry share their samples "
+              "(strongly correlated z), so deviations come in groups of up to three values. "
+              "A deviation beyond 3 sigma somewhere among hundreds of values is expected by "
+              "chance; the Bonferroni column is the |z| that any of the values would exceed by "
+              "chance only 5 % of the time.", "", "Where the largest deviations are:", ""] + [
+                  f"- {n}" for n in notes]
+    # is the standard error calibrated, and is there a bias? repeat the spectral run with new
+    # seeds over the whole protocol
+    reps = 2 if args.quick else 8
+    zs = np.array([render_gonio(PROPS, ti, to, ph, variant="llvm_ad_spectral", spp=spp,
+                                resolution=res, seed=100 + k).z() for k in range(reps)])
+    zbar = np.abs(zs.mean(axis=0)) * np.sqrt(reps)
+    lines += ["", f"Calibration check: the llvm_ad_spectral run repeated with {reps} other "
+              f"seeds ({zs.size} z values): std of z "
+              + ", ".join(f"{v:.3f}" for v in zs.reshape(-1, 3).std(axis=0))
+              + f" (R, G, B; 1 if the standard error is right), {100 * np.mean(np.abs(zs) > 2):.2f}"
+              f" % beyond 2 sigma (4.55 % if Gaussian), {100 * np.mean(np.abs(zs) > 3):.2f} % "
+              f"beyond 3 sigma (0.27 %). Averaged over the seeds, the largest deviation of a "
+              f"geometry is {zbar.max():.2f} standard errors of the average "
+              f"({int(np.sum(zbar > 3))} of {zbar.size} values beyond 3; a bias would grow "
+              "here)."]
     lines += ["", "## White furnace", "",
               "A uniform environment of radiance 1: the rendered patch is its directional "
               "albedo; the reference is a Gauss-Legendre quadrature of `eval` around the "

@@ -1,0 +1,30 @@
+"""The scripts that generate docs pages run (quick sizes), so the pages can be regenerated."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_gonio_validation_script_quick(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "gonio_validation.py"),
+                           "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+                          timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| llvm_ad_spectral | collimated | emitter |" in proc.stdout
+    assert "| llvm_ad_rgb | mis | 80 |" in proc.stdout
+
+
+def test_showcase_script_small(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "showcase.py"),
+                           "--spp", "2", "--res", "96x30", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    meta = json.loads((tmp_path / "showcase.json").read_text())
+    assert meta["variant"] == "llvm_ad_spectral" and meta["width"] == 96
+    assert (tmp_path / "showcase.png").stat().st_size > 5000
+    assert not (tmp_path / "showcase_raw.exr").exists()
