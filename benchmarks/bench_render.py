@@ -8,8 +8,9 @@
    value (gonio, sky) or a high-sample reference (showcase). Gain = (err^2 t)_cosine /
    (err^2 t)_lobes, the ratio of the times to reach the same error.
 2. Variants: llvm_ad_rgb, llvm_ad_mono and llvm_ad_spectral at equal spp on the showcase
-   (time), and the colour RGB loses: CIEDE2000 of the RGB render against the spectral one
-   (both converged), and per powder of the showcase the BRF colour of the gonio patch.
+   and on the gonio patch over both protocols (time), and the colour RGB loses: CIEDE2000
+   of the RGB render against the spectral one (both converged), and per powder of the
+   showcase the BRF colour of the gonio patch.
 3. Render cost of the powder against diffuse, roughplastic and principled (patch under a
    uniform sky, equal spp) in scalar_rgb and llvm_ad_rgb.
 Times are the best of 3 renders after a warm-up render (kernel compilation).
@@ -100,7 +101,14 @@ def sampling_case_sky(label, props, theta_o, res, spp):
         err = float(np.sqrt(np.mean(pix_std**2 + (f.rendered[0] - f.quadrature[0]) ** 2))
                     / np.mean(f.quadrature[0]))
         out[sampling] = (err, f.seconds, spp)
-    return [_sampling_row(f"uniform sky, {label} cone, theta_o {theta_o:g}, bsdf", out)]
+    row = _sampling_row(f"uniform sky, {label} cone, theta_o {theta_o:g}, bsdf", out)
+    spp_cos = max(1, int(round(spp * out["lobes"][1] / out["cosine"][1])))
+    f = white_furnace({**props, "sampling": "cosine"}, (theta_o,), strategy="bsdf",
+                      spp=spp_cos, resolution=res, seed=7)
+    err = float(np.sqrt(np.mean((f.stderr[0] * res) ** 2 + (f.rendered[0] - f.quadrature[0])
+                                ** 2)) / np.mean(f.quadrature[0]))
+    row.update({"equal_time_cosine_spp": spp_cos, "equal_time_cosine_rel_rmse": err})
+    return [row]
 
 
 def sampling_case_showcase(res, spp, ref_spp):
@@ -128,6 +136,11 @@ def sampling_case_showcase(res, spp, ref_spp):
         out[s] = (err, sec, spp)
     row = _sampling_row(f"showcase {w}x{h}, path tracing (MIS)", out)
     row["reference_spp"] = ref_spp
+    spp_cos = max(1, int(round(spp * out["lobes"][1] / out["cosine"][1])))
+    img, _ = _render(scenes["cosine"], spp_cos, seed=7)
+    row.update({"equal_time_cosine_spp": spp_cos,
+                "equal_time_cosine_rel_rmse": float(np.sqrt(np.mean((img - ref) ** 2))
+                                                    / np.mean(ref))})
     return [row]
 
 
@@ -171,6 +184,33 @@ def variants_showcase(res, spp, ref_spp) -> tuple[list[dict], dict]:
     rel = np.abs(mono - lum(spec)) / np.maximum(lum(spec), 1e-3 * white)
     rows[1].update({"luminance_rel_error_vs_spectral_median": float(np.median(rel))})
     return rows, {"delta_e": de}
+
+
+def variants_gonio(spp: int, res: int, quick: bool) -> list[dict]:
+    """The gonio patch over both protocols (render-gonio, collimated source, a hematite
+    powder with a Mie albedo) in each variant: render time, and the RGB BRF's colour error
+    against the spectral one (analytic values, CIEDE2000, white 1)."""
+    from mitsuba_powder.gonio import render_gonio
+    from mitsuba_powder.photo import delta_e_2000
+    from mitsuba_powder.protocols import protocol_geometries
+
+    ti, to, ph = protocol_geometries("backscatter" if quick else "shadows,backscatter")
+    props = {**SAMPLES["5"], "extinction": 1.0}
+    rows, vals = [], {}
+    for variant in ("llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"):
+        render_gonio(props, ti, to, ph, variant=variant, spp=spp, resolution=res)
+        runs = [render_gonio(props, ti, to, ph, variant=variant, spp=spp, resolution=res,
+                             seed=k) for k in range(REPEAT)]
+        vals[variant] = runs[0].analytic
+        rows.append({"variant": variant, "geometries": len(ti), "spp": spp,
+                     "seconds": min(r.seconds for r in runs)})
+    de = delta_e_2000(vals["llvm_ad_rgb"][None], vals["llvm_ad_spectral"][None], 1.0)[0]
+    t_spec = rows[-1]["seconds"]
+    for r in rows:
+        r["spectral_over_this_time"] = t_spec / r["seconds"]
+    rows[0].update({"delta_e_vs_spectral_mean": float(de.mean()),
+                    "delta_e_vs_spectral_max": float(de.max())})
+    return rows
 
 
 def variants_powder_colour() -> list[dict]:
@@ -264,6 +304,12 @@ def main() -> None:
                            ("delta_e_vs_spectral_mean", "DE00 mean", ".2f"),
                            ("delta_e_vs_spectral_p95", "DE00 p95", ".2f"),
                            ("luminance_rel_error_vs_spectral_median", "mono lum err", ".3f")])
+    gonio_variants = variants_gonio(4 if q else 64, 4 if q else 16, q)
+    print("\n   the gonio patch (sample 5's powder) over the protocols")
+    print_table(gonio_variants, [("variant", "variant", "s"), ("seconds", "s", ".3f"),
+                                 ("spectral_over_this_time", "spectral time / this", ".2f"),
+                                 ("delta_e_vs_spectral_mean", "DE00 mean", ".2f"),
+                                 ("delta_e_vs_spectral_max", "DE00 max", ".2f")])
     colours = variants_powder_colour()
     print("\n   BRF colour per powder, RGB variant vs spectral (CIEDE2000)")
     print_table(colours, [("sample", "sample", "s"), ("delta_e_backscatter", "DE00 retro", ".2f"),
@@ -273,7 +319,7 @@ def main() -> None:
     print_table(cost, [("variant", "variant", "s"), ("bsdf", "bsdf", "s"),
                        ("seconds", "s", ".3f"), ("cost_vs_diffuse", "cost/diffuse", ".2f")])
     save(args.out, "render", [], q, sampling=sampling, variants=variants, colours=colours,
-         render_cost=cost)
+         render_cost=cost, gonio_variants=gonio_variants)
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 3.6), gridspec_kw={"width_ratios": [1, 1.4]})
     ax = axes[0]

@@ -68,6 +68,11 @@ def tables(results: Path) -> dict[str, str]:
         ("delta_e_vs_spectral_p95", "p95", ".2f"), ("delta_e_vs_spectral_max", "max", ".1f"),
         ("luminance_rel_error_vs_spectral_median", "luminance error vs spectral (median)",
          ".3f")])
+    out["gonio_variants"] = md_table(render.get("gonio_variants", []), [
+        ("variant", "variant", "s"), ("geometries", "geometries", "d"), ("spp", "spp", "d"),
+        ("seconds", "render s", ".3f"), ("spectral_over_this_time", "spectral time / this", ".2f"),
+        ("delta_e_vs_spectral_mean", "CIEDE2000 vs spectral, mean", ".2f"),
+        ("delta_e_vs_spectral_max", "max", ".2f")])
     cols = []
     for r in render["colours"]:
         radii = f"{1e3 * r['radius']:g} nm" + (f" + {1e3 * r['radius2']:g} nm"
