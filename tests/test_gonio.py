@@ -158,3 +158,15 @@ def test_cli_render_gonio_protocol(tmp_path, capsys):
     assert main(["render-gonio", "--protocol", "backscatter", "--strategy", "mis",
                  "--out", str(tmp_path)]) == 2
     assert "source_radius > 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", "scalar_spectral", "llvm_ad_mono_polarized"])
+def test_other_variants(variant):
+    """Scalar and polarised variants give the same rendered-vs-analytic agreement."""
+    use_variant(variant)
+    r = render_gonio(PROPS, [20.0, 20.0], [20.0, -40.0], [0.0, 90.0], variant=variant, spp=16,
+                     resolution=8, seed=5)
+    assert np.all(r.agrees()), r.z()
+    if variant == "scalar_rgb":
+        f = white_furnace(PROPS, (30.0,), variant=variant, spp=16, resolution=8, seed=6)
+        assert np.all(np.abs(f.z()) < 3.0), f.z()

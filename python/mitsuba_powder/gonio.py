@@ -232,7 +232,11 @@ def film_weights() -> tuple[np.ndarray, np.ndarray]:
     ``hdrfilm`` estimates: ``M_xyz->srgb int xyz(lambda) s(lambda) dlambda`` times Mitsuba's
     CIE Y normalisation)."""
     lam = np.arange(mi.MI_CIE_MIN, mi.MI_CIE_MAX + 0.5, 1.0)
-    xyz = np.array(mi.cie1931_xyz(mi.Float(lam)), dtype=np.float64) * mi.MI_CIE_Y_NORMALIZATION
+    if mi.variant().startswith("scalar"):
+        xyz = np.array([np.array(mi.cie1931_xyz(float(v))).ravel() for v in lam]).T
+    else:
+        xyz = np.array(mi.cie1931_xyz(mi.Float(lam)), dtype=np.float64)
+    xyz = xyz * mi.MI_CIE_Y_NORMALIZATION
     m = np.array([np.array(mi.xyz_to_srgb(mi.Color3f(*[float(v) for v in e]))).ravel()
                   for e in np.eye(3)]).T
     return lam, m @ xyz
@@ -251,22 +255,39 @@ def _eval_channels(bsdf, view: np.ndarray, light: np.ndarray) -> np.ndarray:
         view = np.repeat(view, g, axis=0)
         light = np.repeat(light, g, axis=0)
         lam_lanes = np.tile(lam_p, (k, 1))
-    si = dr.zeros(mi.SurfaceInteraction3f, view.shape[0])
-    si.wi = mi.Vector3f(*[view[:, j].astype(np.float32) for j in range(3)])
-    if spectral:
-        si.wavelengths = mi.UnpolarizedSpectrum(*[lam_lanes[:, j].astype(np.float32)
-                                                  for j in range(4)])
-    value = bsdf.eval(mi.BSDFContext(), si,
-                      mi.Vector3f(*[light[:, j].astype(np.float32) for j in range(3)]))
-    if mi.is_polarized:
-        value = mi.unpolarized_spectrum(value)
-    arr = np.array(value, dtype=np.float64)
-    arr = (arr[None, :] if arr.ndim == 1 else arr).T  # (lanes, channels)
+    if mi.variant().startswith("scalar"):
+        arr = np.array([_eval_scalar(bsdf, view[i], light[i],
+                                     lam_lanes[i] if spectral else None)
+                        for i in range(view.shape[0])])
+    else:
+        si = dr.zeros(mi.SurfaceInteraction3f, view.shape[0])
+        si.wi = mi.Vector3f(*[view[:, j].astype(np.float32) for j in range(3)])
+        if spectral:
+            si.wavelengths = mi.UnpolarizedSpectrum(*[lam_lanes[:, j].astype(np.float32)
+                                                      for j in range(4)])
+        value = bsdf.eval(mi.BSDFContext(), si,
+                          mi.Vector3f(*[light[:, j].astype(np.float32) for j in range(3)]))
+        if mi.is_polarized:
+            value = mi.unpolarized_spectrum(value)
+        arr = np.array(value, dtype=np.float64)
+        arr = (arr[None, :] if arr.ndim == 1 else arr).T  # (lanes, channels)
     if spectral:
         spec = arr.reshape(k, g * 4)[:, :n_lam]
         white = weights.sum(axis=1)
         return (spec @ weights.T) / white
     return arr
+
+
+def _eval_scalar(bsdf, view: np.ndarray, light: np.ndarray, lam) -> np.ndarray:
+    """One ``eval`` in a scalar variant: the channel values as a 1D array."""
+    si = mi.SurfaceInteraction3f()
+    si.wi = mi.Vector3f(*[float(v) for v in view])
+    if lam is not None:
+        si.wavelengths = mi.UnpolarizedSpectrum(*[float(v) for v in lam])
+    value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[float(v) for v in light]))
+    if mi.is_polarized:
+        value = mi.unpolarized_spectrum(value)
+    return np.atleast_1d(np.array(value, dtype=np.float64)).ravel()
 
 
 def _analytic(bsdf, wo: np.ndarray, wi: np.ndarray, source_radius: float) -> np.ndarray:
