@@ -35,6 +35,7 @@ CASES = [
     ("rgb_wavelengths", "611, red, 464", ['"rgb_wavelengths"', '"red" is not a number']),
     ("rgb_wavelengths", "611, -549, 464", ['"rgb_wavelengths"', "-549", "(0, inf)"]),
     ("albedo", 1.5, ['"albedo"', "1.5", "[0, 1]"]),
+    ("albedo", -0.5, ['"albedo"', "minimum of -0.5", "[0, 1]"]),
 ]
 
 
@@ -82,7 +83,21 @@ def test_bad_grain_property_is_rejected(props, fragments):
     with pytest.raises(RuntimeError) as info:
         mi.load_dict({"type": "powder", **props})
     for fragment in fragments:
-        assert fragment in str(info.value), str(info.value)
+        assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize("variant", ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_spectral"])
+@pytest.mark.parametrize("value,fragment", [(1.5, "maximum of 1.5"), (-0.25, "minimum of -0.25")])
+def test_albedo_out_of_range_through_traverse_is_rejected(variant, value, fragment):
+    """An albedo edited after loading (mi.traverse, render --params) is checked like one given
+    at construction."""
+    use_variant(variant)
+    params = mi.traverse(mi.load_dict(GOOD))
+    params["albedo.value"] = type(params["albedo.value"])(value)
+    with pytest.raises(RuntimeError, match=fragment):
+        params.update()
+    params["albedo.value"] = type(params["albedo.value"])(0.7)
+    params.update()  # a valid value is accepted again, str(info.value)
 
 
 def test_wavelengths_outside_the_optical_constants_are_rejected():

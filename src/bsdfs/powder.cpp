@@ -298,6 +298,8 @@ public:
                               string::contains(keys, "fraction2");
         if (!m_albedo && grains_changed)
             update_mie_tables();
+        if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
+            check_albedo();
 
         // Detached means, used only to weight the sampling lobes
         m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
@@ -1022,14 +1024,51 @@ private:
 
     void check_albedo() const {
         ScalarFloat max_value;
+        bool has_max = true;
         try {
             max_value = m_albedo->max();
         } catch (const std::exception &) {
-            return; // this texture type cannot report its maximum
+            has_max = false; // this texture type cannot report its maximum
         }
-        if (!(max_value <= 1.f + 1e-5f))
+        if (has_max && !(max_value <= 1.f + 1e-5f))
             Throw("powder: property \"albedo\" has a maximum of %g; a "
                   "single-scattering albedo must lie in [0, 1]", (double) max_value);
+        if (!m_albedo->is_spatially_varying()) {
+            ScalarFloat min_value;
+            try {
+                min_value = albedo_minimum();
+            } catch (const std::exception &) {
+                return; // this texture type cannot be evaluated in this variant
+            }
+            if (!(min_value >= 0.f))
+                Throw("powder: property \"albedo\" has a minimum of %g; a "
+                      "single-scattering albedo must lie in [0, 1]", (double) min_value);
+        }
+    }
+
+    /// Smallest value of a spatially uniform albedo (over the spectral table's
+    /// wavelengths in spectral variants), detached
+    ScalarFloat albedo_minimum() const {
+        ScalarFloat result = std::numeric_limits<ScalarFloat>::infinity();
+        int steps = is_spectral_v<Spectrum> ? (TableSize + 3) / 4 : 1;
+        for (int i = 0; i < steps; ++i) {
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
+            if constexpr (is_spectral_v<Spectrum>) {
+                for (size_t j = 0; j < 4; ++j)
+                    si.wavelengths[j] = dr::minimum(TableMin + (4 * i + j) * TableStep,
+                                                    TableMin + (TableSize - 1) * TableStep);
+            }
+            UnpolarizedSpectrum v = dr::detach(m_albedo->eval(si));
+            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
+                ScalarFloat x;
+                if constexpr (dr::is_jit_v<Float>)
+                    x = dr::slice(v[j], 0);
+                else
+                    x = v[j];
+                result = std::min(result, x);
+            }
+        }
+        return result;
     }
 
     void parse_lobes(const std::string &spec) {
