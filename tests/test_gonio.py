@@ -170,3 +170,20 @@ def test_other_variants(variant):
     if variant == "scalar_rgb":
         f = white_furnace(PROPS, (30.0,), variant=variant, spp=16, resolution=8, seed=6)
         assert np.all(np.abs(f.z()) < 3.0), f.z()
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (([95.0], [0.0], [0.0]), r"theta_i = 95 degrees is out of range; valid range is \[0, 90\)"),
+    (([30.0], [-90.0], [0.0]), r"theta_o = -90 degrees .* \(-90, 90\)"),
+    (([30.0], [10.0], [400.0]), r"phi = 400 degrees .* \[-360, 360\]"),
+    (([float("nan")], [10.0], [0.0]), "theta_i = nan"),
+])
+def test_bad_geometry_is_rejected(args, fragment):
+    with pytest.raises(ValueError, match=fragment):
+        render_gonio({}, *args)
+
+
+def test_cli_wavelength_needs_a_mono_variant(tmp_path, capsys):
+    assert main(["render-gonio", "--protocol", "backscatter", "--wavelength", "500",
+                 "--out", str(tmp_path)]) == 2
+    assert "--wavelength 500 applies to mono variants" in capsys.readouterr().err

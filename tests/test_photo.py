@@ -172,3 +172,9 @@ def test_clipped_photo_pixels_are_left_out(tmp_path):
     assert stats.saturated_pixels > 100
     np.testing.assert_allclose(stats.gains, 1.0 / gains, rtol=0.01)
     assert stats.mean < 0.5
+
+
+def test_negative_chart_window_is_rejected():
+    img, corners = chart_image(np.eye(3))
+    with pytest.raises(ValueError, match=r"--chart-window\) = -1 px"):
+        P.calibrate_with_chart(img, corners, half=-1)

@@ -124,5 +124,7 @@ def test_render_applies_fitted_parameters(tmp_path, capsys):
     b = mi.load_file(str(SCENE), res_x="48", res_y="24", rfilter="box")
     applied, missing = apply_properties(b, {"albedo": 0.5, "extinction": 3.0})
     assert applied == ["albedo", "extinction"] and missing == []
+    with pytest.raises(ValueError, match="'extinction' = 'abc': expected a number"):
+        apply_properties(b, {"extinction": "abc"})
     np.testing.assert_allclose(np.array(mi.render(b, spp=4)), np.array(mi.render(a, spp=4)),
                                rtol=1e-5, atol=1e-7)

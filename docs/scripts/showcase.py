@@ -47,7 +47,12 @@ def main() -> None:
     parser.add_argument("--res", default="960x300", help="WIDTHxHEIGHT")
     parser.add_argument("--out", default=str(ROOT / "docs" / "figures"))
     args = parser.parse_args()
-    width, height = (int(v) for v in args.res.split("x"))
+    try:
+        width, height = (int(v) for v in args.res.split("x"))
+    except ValueError:
+        parser.error(f"--res {args.res!r}: expected WIDTHxHEIGHT in pixels, e.g. 960x300")
+    if width < 1 or height < 1 or args.spp < 1:
+        parser.error(f"--res {args.res} and --spp {args.spp} must be positive")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     exr = out / "showcase_raw.exr"

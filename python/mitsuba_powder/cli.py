@@ -201,6 +201,10 @@ def _cmd_render_gonio(args: argparse.Namespace) -> int:
     else:
         ti, to, ph = protocol_geometries(args.protocol or "shadows,backscatter")
         variant = args.variant or "llvm_ad_rgb"
+        if args.wavelength is not None and "mono" not in variant:
+            raise ValueError(f"--wavelength {args.wavelength:g} applies to mono variants "
+                             f"(--variant {variant} renders every channel); use e.g. "
+                             "--variant llvm_ad_mono")
         wl = args.wavelength if "mono" in variant else None
         props = load_properties(args.params, wl, overrides)
         result = render_gonio(props, ti, to, ph, wavelength=wl, variant=variant, **kwargs)

@@ -335,6 +335,15 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
                   (theta_i, theta_o, phi))
     if not (len(ti) == len(to) == len(ph)) or len(ti) == 0:
         raise ValueError("theta_i, theta_o and phi must be non-empty and of equal length")
+    for name, values, lo, hi, lo_in in (("theta_i", ti, 0.0, 90.0, True),
+                                         ("theta_o", to, -90.0, 90.0, False),
+                                         ("phi", ph, -360.0, 360.0, True)):
+        ok = np.isfinite(values) & (values >= lo if lo_in else values > lo) & (
+            values < hi if name != "phi" else values <= hi)
+        if not ok.all():
+            bad = float(values[~ok][0])
+            valid = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if name == 'phi' else ')'}"
+            raise ValueError(f"{name} = {bad:g} degrees is out of range; valid range is {valid}")
     mono = "mono" in variant
     if wavelength is None:
         lam = np.full(len(ti), 700.0 if mono else np.nan)

@@ -140,6 +140,9 @@ def chart_patch_centres(corners) -> np.ndarray:
 
 def sample_patches(image: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
     """Mean RGB (24, 3) in a ``(2 half + 1)^2`` pixel window around each centre."""
+    if half < 0:
+        raise ValueError(f"chart window half-size (--chart-window) = {half} px is out of range; "
+                         "valid range is [0, inf)")
     h, w = image.shape[:2]
     out = []
     for x, y in centres:

@@ -58,12 +58,14 @@ def apply_properties(scene, properties: dict) -> tuple[list[str], list[str]]:
         if not hits:
             missing.append(name)
             continue
+        try:
+            numbers = [float(v) for v in (value if isinstance(value, (list, tuple))
+                                          else [value])]
+        except (TypeError, ValueError):
+            raise ValueError(f"powder property {name!r} = {value!r}: expected a number "
+                             "(or a list of numbers)") from None
         for key in hits:
-            current = params[key]
-            if isinstance(value, (list, tuple)):
-                params[key] = type(current)(*[float(v) for v in value])
-            else:
-                params[key] = type(current)(float(value))
+            params[key] = type(params[key])(*numbers)
         applied.append(name)
     params.update()
     return applied, missing
