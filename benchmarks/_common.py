@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -12,6 +13,40 @@ import drjit as dr
 import numpy as np
 
 OUT = Path(__file__).resolve().parent / "results"
+
+
+def arg_parser(doc: str) -> argparse.ArgumentParser:
+    """The options every benchmark script has: ``--quick`` (CI sizes) and ``--out``."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
+    parser.add_argument("--out", type=Path, default=OUT, help="folder for .json and .png")
+    return parser
+
+
+def use_variant(variant: str) -> None:
+    """Select a Mitsuba variant and make the powder plugin findable in it."""
+    import mitsuba as mi
+
+    mi.set_variant(variant)
+    import mitsuba_powder
+
+    mitsuba_powder.register()
+
+
+def barh_figure(path: Path, labels, values, colors, xlabel: str, log: bool = False,
+                figsize=(7, 3.5)) -> None:
+    """A horizontal bar chart, first label on top, written to ``path``."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=figsize)
+    ax.barh(labels, values, color=colors)
+    if log:
+        ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.invert_yaxis()
+    ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def timeit(fn, repeat: int, warmup: int = 1) -> float:

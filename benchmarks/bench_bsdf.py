@@ -12,15 +12,13 @@ Run:  python benchmarks/bench_bsdf.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import OUT, print_table, pyplot, save, timeit
+from _common import arg_parser, print_table, pyplot, save, timeit, use_variant
 
 BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
 BSDFS = {
@@ -122,9 +120,7 @@ def bench_scalar(props: dict, n: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser = arg_parser(__doc__)
     args = parser.parse_args()
     n_jit = 1024 if args.quick else 1 << 21
     n_scalar = 200 if args.quick else 20_000
@@ -132,10 +128,7 @@ def main() -> None:
     variants = ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
     rows = []
     for variant in variants:
-        mi.set_variant(variant)
-        import mitsuba_powder
-
-        mitsuba_powder.register()
+        use_variant(variant)
         for name, props in BSDFS.items():
             if variant.startswith("scalar"):
                 r = bench_scalar(props, n_scalar)

@@ -8,13 +8,12 @@ Run:  python benchmarks/bench_fit.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import time
-from pathlib import Path
 
-OUT = Path(__file__).resolve().parent / "results"
+from _common import arg_parser
+
 TRUTH = {"amplitude_volume": 1.1, "g": 0.2, "extinction": 0.45, "radius": 0.05,
          "amplitude_surface": 5e-4, "correlation_length": 1.2}
 
@@ -23,9 +22,7 @@ def main() -> None:
     from mitsuba_powder.fit import fit
     from mitsuba_powder.protocols import simulate
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser = arg_parser(__doc__)
     args = parser.parse_args()
     cases = [("backscatter", (700.0,)), ("shadows,backscatter", (700.0,))]
     if not args.quick:

@@ -16,7 +16,7 @@ import sys
 import time
 from pathlib import Path
 
-from _common import OUT, print_table, pyplot, save
+from _common import arg_parser, barh_figure, print_table, save, use_variant
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,10 +29,7 @@ def job(name: str, quick: bool) -> dict:
     import mitsuba as mi
 
     def prepare(variant: str) -> None:
-        mi.set_variant(variant)
-        import mitsuba_powder
-
-        mitsuba_powder.register()
+        use_variant(variant)
         mi.load_dict({"type": "powder"})
 
     info: dict = {}
@@ -75,9 +72,7 @@ def job(name: str, quick: bool) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser = arg_parser(__doc__)
     parser.add_argument("--job", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.job:
@@ -109,15 +104,9 @@ def main() -> None:
                        ("over_baseline_mib", "over baseline MiB", ".0f"),
                        ("seconds", "wall s", ".1f")])
     save(args.out, "memory", rows, args.quick)
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7, 3))
-    ax.barh([r["job"] for r in rows], [r["peak_rss_mib"] for r in rows], color="tab:gray")
-    ax.set_xlabel("peak resident memory, MiB")
-    ax.invert_yaxis()
-    ax.tick_params(labelsize=7)
-    fig.tight_layout()
-    fig.savefig(args.out / "memory.png", dpi=100)
-
+    barh_figure(args.out / "memory.png", [r["job"] for r in rows],
+                [r["peak_rss_mib"] for r in rows], "tab:gray", "peak resident memory, MiB",
+                figsize=(7, 3))
 
 if __name__ == "__main__":
     main()

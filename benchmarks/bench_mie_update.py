@@ -9,23 +9,18 @@ Run:  python benchmarks/bench_mie_update.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
-from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import OUT, timeit
+from _common import arg_parser, timeit, use_variant
 
 
 def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:
-    mi.set_variant(variant)
-    import mitsuba_powder
-
-    mitsuba_powder.register()
+    use_variant(variant)
     bsdf = mi.load_dict({"type": "powder", "radius": radius})
     params = mi.traverse(bsdf)
     rng = np.random.default_rng(0)
@@ -74,10 +69,7 @@ def construction(variant: str, repeat: int) -> dict:
     """Time of mi.load_dict of a powder whose albedo comes from Mie theory, with tau_o given
     and with tau_o from Fresnel (computed once per wavelength of the table at construction:
     eta is not a differentiable parameter, so no update recomputes it)."""
-    mi.set_variant(variant)
-    import mitsuba_powder
-
-    mitsuba_powder.register()
+    use_variant(variant)
     out = {"variant": variant}
     for label, extra in (("tau_given", {"tau_o": 0.6667}), ("tau_fresnel", {})):
         out[f"load_{label}_s"] = timeit(
@@ -88,9 +80,7 @@ def construction(variant: str, repeat: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
-    parser.add_argument("--out", type=Path, default=OUT, help="folder for .json and .png")
+    parser = arg_parser(__doc__)
     args = parser.parse_args()
     variants = ["llvm_ad_mono", "llvm_ad_rgb", "llvm_ad_spectral"]
     radii = [0.017, 3.0] if args.quick else [0.017, 0.3, 3.0]

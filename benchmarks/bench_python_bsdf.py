@@ -10,16 +10,14 @@ Run:  python benchmarks/bench_python_bsdf.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 import python_powder
-from _common import OUT, print_table, pyplot, save
+from _common import arg_parser, barh_figure, print_table, save, use_variant
 from bench_bsdf import bench_jit, bench_scalar, directions
 
 PROPS = {"albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3, "tau_o": 2.0 / 3.0,
@@ -79,19 +77,14 @@ def max_relative_difference(n: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser = arg_parser(__doc__)
     args = parser.parse_args()
     n_jit = 1024 if args.quick else 1 << 21
     n_scalar = 200 if args.quick else 20_000
     repeat = 2 if args.quick else 7
     rows = []
     for variant in ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_spectral"]:
-        mi.set_variant(variant)
-        import mitsuba_powder
-
-        mitsuba_powder.register()
+        use_variant(variant)
         python_powder.register()
         scalar = variant.startswith("scalar")
         res, spp = (16, 2) if args.quick else ((64, 4) if scalar else (256, 64))
@@ -124,19 +117,11 @@ def main() -> None:
                        ("render_cpp_speedup", "render speedup", ".2f"),
                        ("max_rel_difference", "max rel diff", ".1e")])
     save(args.out, "python_bsdf", rows, args.quick)
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    labels = [f"{r['variant']}\n{r['implementation']}" for r in rows]
-    ax.barh(labels, [r["render_s"] for r in rows],
-            color=["tab:orange" if r["implementation"].startswith("C++") else "tab:blue"
-                   for r in rows])
-    ax.set_xscale("log")
-    ax.set_xlabel("render time, s (log)")
-    ax.invert_yaxis()
-    ax.tick_params(labelsize=7)
-    fig.tight_layout()
-    fig.savefig(args.out / "python_bsdf.png", dpi=100)
-
+    barh_figure(args.out / "python_bsdf.png",
+                [f"{r['variant']}\n{r['implementation']}" for r in rows],
+                [r["render_s"] for r in rows],
+                ["tab:orange" if r["implementation"].startswith("C++") else "tab:blue"
+                 for r in rows], "render time, s (log)", log=True)
 
 if __name__ == "__main__":
     main()

@@ -20,7 +20,6 @@ Run:  python benchmarks/bench_render.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import OUT, print_table, pyplot, save
+from _common import arg_parser, print_table, pyplot, save, use_variant
 
 ROOT = Path(__file__).resolve().parents[1]
 REPEAT = 3  # timings are the best of REPEAT renders
@@ -112,10 +111,7 @@ def sampling_case_sky(label, props, theta_o, res, spp):
 
 
 def sampling_case_showcase(res, spp, ref_spp):
-    mi.set_variant("llvm_ad_rgb")
-    import mitsuba_powder
-
-    mitsuba_powder.register()
+    use_variant("llvm_ad_rgb")
     w, h = res
     scenes = {"lobes": mi.load_file(str(SHOWCASE), res_x=str(w), res_y=str(h))}
     # sampling is a construction property, not a traversable one: a copy of the scene file
@@ -160,10 +156,7 @@ def variants_showcase(res, spp, ref_spp) -> tuple[list[dict], dict]:
     w, h = res
     rows, images = [], {}
     for variant in ("llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"):
-        mi.set_variant(variant)
-        import mitsuba_powder
-
-        mitsuba_powder.register()
+        use_variant(variant)
         scene = mi.load_file(str(SHOWCASE), res_x=str(w), res_y=str(h))
         _render(scene, spp)
         sec = min(_render(scene, spp, seed=1 + k)[1] for k in range(REPEAT))
@@ -243,10 +236,7 @@ def render_cost(res_jit, spp_jit, res_scalar, spp_scalar) -> list[dict]:
              "diffuse": {"type": "diffuse"}, "roughplastic": {"type": "roughplastic"},
              "principled": {"type": "principled"}}
     for variant in ("scalar_rgb", "llvm_ad_rgb"):
-        mi.set_variant(variant)
-        import mitsuba_powder
-
-        mitsuba_powder.register()
+        use_variant(variant)
         res, spp = (res_scalar, spp_scalar) if variant.startswith("scalar") else (res_jit,
                                                                                  spp_jit)
         times = {}
@@ -269,9 +259,7 @@ def render_cost(res_jit, spp_jit, res_scalar, spp_scalar) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (CI)")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser = arg_parser(__doc__)
     args = parser.parse_args()
     q = args.quick
     gres, gspp = (4, 4) if q else (64, 64)

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .gonio import _eval_channels, _film, _sensor, film_weights, patch_dict
+from .gonio import eval_channels, film_dict, film_weights, patch_dict, sensor_dict
 from .model import variant as use_variant
 
 STRATEGIES = {"bsdf": (0, 1), "mis": (1, 1)}
@@ -71,7 +71,7 @@ def albedo_quadrature(bsdf, theta_o: float, n_rho: int = 384, n_psi: int = 384,
     total = 0.0
     for s in range(0, len(d), chunk):
         part = d[s:s + chunk]
-        vals = _eval_channels(bsdf, np.repeat(wo[None, :], len(part), axis=0), part)
+        vals = eval_channels(bsdf, np.repeat(wo[None, :], len(part), axis=0), part)
         total = total + (w[s:s + chunk, None] * vals).sum(axis=0)
     return np.asarray(total)
 
@@ -110,9 +110,9 @@ def white_furnace(properties: dict, theta_o=(0.0, 45.0, 75.0), *,
             "integrator": {"type": "direct", "emitter_samples": e, "bsdf_samples": b},
             "patch": patch_dict(properties),
             "sky": {"type": "constant", "radiance": {"type": "uniform", "value": 1.0}},
-            "sensor": {"type": "batch", "film": _film(resolution * len(angles), resolution),
+            "sensor": {"type": "batch", "film": film_dict(resolution * len(angles), resolution),
                        "sampler": {"type": "independent", "sample_count": spp},
-                       **{f"s{j}": _sensor(v, resolution, spp) for j, v in enumerate(views)}},
+                       **{f"s{j}": sensor_dict(v, resolution, spp) for j, v in enumerate(views)}},
         })
         start = time.perf_counter()
         image = mi.render(scene, seed=seed)

@@ -124,17 +124,20 @@ def _transform_look(direction: np.ndarray, distance: float) -> mi.ScalarTransfor
                                           target=[0.0, 0.0, 0.0], up=up)
 
 
-def _film(width: int, height: int) -> dict:
+def film_dict(width: int, height: int) -> dict:
+    """An ``hdrfilm`` with a box filter (each sample lands in one pixel only), float32."""
     return {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
             "pixel_format": "luminance" if "mono" in mi.variant() else "rgb",
             "component_format": "float32"}
 
 
-def _sensor(direction: np.ndarray, resolution: int, spp: int) -> dict:
+def sensor_dict(direction: np.ndarray, resolution: int, spp: int) -> dict:
+    """An orthographic sensor looking at the patch centre from the unit ``direction``,
+    covering 1 x 1 scene units on ``resolution^2`` pixels."""
     return {"type": "orthographic",
             "to_world": _transform_look(direction, CAMERA_DISTANCE)
             @ mi.ScalarTransform4f().scale([0.5, 0.5, 1.0]),
-            "film": _film(resolution, resolution),
+            "film": film_dict(resolution, resolution),
             "sampler": {"type": "independent", "sample_count": spp}}
 
 
@@ -179,17 +182,6 @@ def patch_dict(properties: dict) -> dict:
     return {"type": "rectangle",
             "to_world": mi.ScalarTransform4f().scale([PATCH_HALF_SIZE, PATCH_HALF_SIZE, 1.0]),
             "bsdf": {"type": "powder", **properties}}
-
-
-def gonio_scene_dict(properties: dict, theta_i: float, theta_o: float, phi: float, *,
-                     source_radius: float = 0.0, strategy: str = "emitter",
-                     resolution: int = 16, spp: int = 64) -> dict:
-    """Scene dict of the virtual goniometer at one geometry (degrees): what
-    :func:`render_gonio` renders, with a plain orthographic sensor instead of a batch."""
-    wi, wo = (v[0] for v in gonio_directions(theta_i, theta_o, phi))
-    return {"type": "scene", "integrator": _integrator(strategy, source_radius == 0.0),
-            "patch": patch_dict(properties), **source_dict(wi, source_radius),
-            "sensor": _sensor(wo, resolution, spp)}
 
 
 def _check(variant: str, spp: int, resolution: int, source_radius: float) -> None:
@@ -245,7 +237,7 @@ def film_weights() -> tuple[np.ndarray, np.ndarray]:
     return lam, m @ xyz
 
 
-def _eval_channels(bsdf, view: np.ndarray, light: np.ndarray) -> np.ndarray:
+def eval_channels(bsdf, view: np.ndarray, light: np.ndarray) -> np.ndarray:
     """``bsdf.eval`` (f cos theta_light) for (K, 3) view and light directions: (K, C) in
     RGB/mono variants, (K, 3) sRGB film values per unit spectrum in spectral variants."""
     spectral = mi.is_spectral
@@ -298,7 +290,7 @@ def _analytic(bsdf, wo: np.ndarray, wi: np.ndarray, source_radius: float) -> np.
     nodes, weights = _disk_nodes(wi, source_radius)
     out = []
     for view in wo:
-        vals = _eval_channels(bsdf, np.repeat(view[None, :], len(nodes), axis=0), nodes)
+        vals = eval_channels(bsdf, np.repeat(view[None, :], len(nodes), axis=0), nodes)
         out.append(np.pi * (weights[:, None] * vals).sum(axis=0) / wi[2])
     return np.array(out)
 
@@ -375,9 +367,9 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
             scene = mi.load_dict({
                 "type": "scene", "integrator": integrator, "patch": patch_dict(props),
                 **source_dict(wi, source_radius),
-                "sensor": {"type": "batch", "film": _film(resolution * len(idx), resolution),
+                "sensor": {"type": "batch", "film": film_dict(resolution * len(idx), resolution),
                            "sampler": {"type": "independent", "sample_count": spp},
-                           **{f"s{j}": _sensor(wo_all[i], resolution, spp)
+                           **{f"s{j}": sensor_dict(wo_all[i], resolution, spp)
                               for j, i in enumerate(idx)}},
             })
             start = time.perf_counter()
