@@ -788,11 +788,14 @@ private:
                    rewritten with non-negative terms so that it keeps its
                    precision when |g| -> 1:
                    g >= 0: (1 - g)^2 + g |wi + wo|^2
-                   g <  0: (1 + g)^2 - g |wi - wo|^2 */
+                   g <  0: (1 + g)^2 - g |wi - wo|^2
+                   (|g| written as a select: the derivative of dr::abs at
+                   g = 0 is 0, which gave a wrong d/dg at the default g = 0) */
                 Mask g_pos = m_g >= 0.f;
                 Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
-                          dr::abs(m_g) * dr::select(g_pos, dr::squared_norm(wi + wo),
-                                                    dr::squared_norm(wi - wo)),
+                          dr::select(g_pos, m_g, -m_g) *
+                              dr::select(g_pos, dr::squared_norm(wi + wo),
+                                         dr::squared_norm(wi - wo)),
                       phase = (1.f - dr::square(m_g)) / (t * dr::sqrt(t));
                 Float factor = phase / mu_sum;
                 if (m_finite_thickness)
