@@ -1,6 +1,19 @@
-"""Goniometric BRDF measurements: the CSV format, a strict loader and a writer.
+"""Goniometric BRDF measurements: the CSV format, a strict loader, a writer, and the dispatch
+that also reads the IPAG goniometers' text files (:mod:`mitsuba_powder.ipag`).
 
-Format (UTF-8 CSV; lines starting with ``#`` are comments, kept as provenance)::
+:func:`load_measurements` recognises what it is given:
+
+- a CSV file in the project's format (below; any file ending in ``.csv``, or a text file whose
+  first non-comment line is the CSV header);
+- an IPAG multi-geometry file (``*_geo*.txt``: rows ``Incidence``, ``Emergence``, ``Azimuth``);
+- an IPAG single-geometry file (three columns, geometry in the name ``..._i20e30a0_c.txt``);
+- a folder of IPAG single-geometry files (one data set, one sample).
+
+The IPAG layouts and their angle conventions are described in :mod:`mitsuba_powder.ipag` and
+docs/fitting.md ("Files from IPAG goniometers and SSHADE").
+
+CSV format (UTF-8; lines starting with ``#`` are comments, kept as provenance; CRLF, LF or CR
+line endings)::
 
     # source: ...
     theta_i,theta_o,phi,wavelength,brf,sigma
@@ -17,6 +30,15 @@ Columns (any order; ``sigma`` optional):
 - ``wavelength``: nm, > 0.
 - ``brf``: reflectance factor, ``pi * BRDF`` (1 for a white Lambertian), >= 0.
 - ``sigma``: 1-sigma uncertainty of ``brf``, > 0.
+
+Replicates. Rows with the same incidence, viewing direction and wavelength are separate
+observations (replicated measurements), each counted in a fit's loss and in N. Directions are
+compared as unit vectors, so ``(theta_o, phi)`` and ``(-theta_o, phi + 180)`` and ``theta_o = 0``
+in any azimuth plane are the same geometry. :meth:`Measurements.geometry_summary` counts rows,
+unique geometries and replicated rows. In the CSV every row has the header's columns and units,
+so same-geometry rows are always replicates, never contradictory. What is contradictory in the
+IPAG layouts (files of different samples in one folder, replicate files whose calibration
+metadata disagree) is an error naming both files and lines (see :mod:`mitsuba_powder.ipag`).
 """
 
 from __future__ import annotations
@@ -52,8 +74,15 @@ class Measurements:
     Attributes:
         theta_i, theta_o, phi, wavelength, brf: 1D arrays of equal length.
         sigma: 1-sigma uncertainties of ``brf``, or ``None`` if the file has none.
-        comments: the file's ``#`` lines (provenance), without the ``#``.
+        comments: the file's ``#`` lines (provenance), without the ``#``; the IPAG loader
+            adds lines starting with ``loader:`` (file kind, angle convention, skipped
+            values).
         source: where the data came from (a path or a description).
+        convention: the angle convention the loader converted from: ``"project"`` (CSV),
+            ``"signed"`` or ``"physical"`` (IPAG), ``"any"`` (IPAG, every emergence 0: both
+            conventions agree), or ``""`` (built in code).
+        skipped: what the loader left out, by reason (e.g. ``{"nan_values": 3}``); see
+            :mod:`mitsuba_powder.ipag`.
     """
 
     theta_i: np.ndarray
@@ -64,6 +93,8 @@ class Measurements:
     sigma: np.ndarray | None = None
     comments: list[str] = field(default_factory=list)
     source: str = ""
+    convention: str = ""
+    skipped: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in REQUIRED:
@@ -88,11 +119,37 @@ class Measurements:
         return Measurements(self.theta_i[mask], self.theta_o[mask], self.phi[mask],
                             self.wavelength[mask], self.brf[mask],
                             None if self.sigma is None else self.sigma[mask],
-                            list(self.comments), self.source)
+                            list(self.comments), self.source, self.convention,
+                            dict(self.skipped))
 
     def wavelengths(self) -> np.ndarray:
         """The distinct wavelengths, nm, sorted."""
         return np.unique(self.wavelength)
+
+    def geometry_keys(self, with_wavelength: bool = True) -> np.ndarray:
+        """One integer id per row: rows with equal ids share incidence and viewing direction
+        (unit vectors to 1e-9, so ``theta_o = 0`` in every azimuth plane is one direction) and,
+        if ``with_wavelength``, wavelength."""
+        return _geometry_ids(self.theta_i, self.theta_o, self.phi,
+                             self.wavelength if with_wavelength else None)
+
+    def geometry_summary(self) -> dict[str, int]:
+        """Counts for a fit report.
+
+        Returns:
+            ``rows``: observations; ``geometries``: distinct (incidence, viewing direction,
+            wavelength); ``directions``: distinct (incidence, viewing direction), wavelength
+            ignored; ``replicated_rows``: rows beyond the first at their geometry
+            (``rows - geometries``); ``replicated_geometries``: geometries observed more than
+            once.
+        """
+        ids = self.geometry_keys(True)
+        counts = np.bincount(ids) if len(ids) else np.zeros(0, dtype=int)
+        return {"rows": len(self),
+                "geometries": int(np.count_nonzero(counts)),
+                "directions": int(len(np.unique(self.geometry_keys(False)))),
+                "replicated_rows": int(len(self) - np.count_nonzero(counts)),
+                "replicated_geometries": int(np.count_nonzero(counts > 1))}
 
 
 def gonio_directions(theta_i, theta_o, phi) -> tuple[np.ndarray, np.ndarray]:
@@ -105,6 +162,28 @@ def gonio_directions(theta_i, theta_o, phi) -> tuple[np.ndarray, np.ndarray]:
     return wi, wo
 
 
+def _geometry_ids(theta_i, theta_o, phi, wavelength=None) -> np.ndarray:
+    """Integer ids of distinct geometries (directions compared as unit vectors to 1e-9)."""
+    wi, wo = gonio_directions(theta_i, theta_o, phi)
+    cols = [wi, wo] + ([np.asarray(wavelength, dtype=np.float64)[:, None]]
+                       if wavelength is not None else [])
+    keys = np.round(np.concatenate(cols, axis=1), 9) + 0.0  # + 0.0: -0 -> 0
+    if not len(keys):
+        return np.zeros(0, dtype=np.int64)
+    _, ids = np.unique(keys, axis=0, return_inverse=True)
+    return ids.ravel()
+
+
+def format_number(value: float, digits: int | None = None) -> str:
+    """``value`` as text: ``digits`` significant digits, or (``None``) the shortest text that
+    reads back to exactly the same float (``%.10g`` when that is exact)."""
+    value = float(value)
+    if digits is not None:
+        return f"{value:.{digits}g}"
+    text = f"{value:.10g}"
+    return text if float(text) == value else repr(value)
+
+
 def _check_range(name: str, value: float, where: str) -> None:
     lo, hi, lo_in, hi_in = RANGES[name]
     ok = (value >= lo if lo_in else value > lo) and (value <= hi if hi_in else value < hi)
@@ -114,18 +193,44 @@ def _check_range(name: str, value: float, where: str) -> None:
             f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}")
 
 
-def load_measurements(path: str | Path) -> Measurements:
-    """Read and validate a measurement CSV file.
+def load_measurements(path: str | Path, convention: str | None = None,
+                      zero_error: str = "raise") -> Measurements:
+    """Read and validate measurements: a CSV file, an IPAG file, or a folder of IPAG files.
+
+    Args:
+        path: a CSV file (project format, above), an IPAG multi- or single-geometry text file,
+            or a folder of IPAG single-geometry files.
+        convention: IPAG files only: ``"signed"`` or ``"physical"`` forces the angle
+            convention; ``None`` decides it from the file (see :mod:`mitsuba_powder.ipag`).
+        zero_error: IPAG files only: what to do when some (not all) errors are zero or
+            missing: ``"raise"``, ``"unweighted"`` (drop every sigma) or ``"skip"`` (leave
+            those values out, counted).
+
+    Returns:
+        The measurements; ``comments`` carry the provenance and the loader's notes.
 
     Raises:
-        MeasurementError: missing or unknown column, a field that is not a finite number, a
-            value out of range, a row of the wrong length, a duplicate geometry (same
-            directions and wavelength), or no data. The message names the line and column.
-        FileNotFoundError: the file does not exist.
+        MeasurementError: a malformed file (the message names the file, line and column), or
+            an IPAG file whose angle convention cannot be decided.
+        FileNotFoundError: the path does not exist.
     """
+    from . import ipag
+
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"measurement file {path} does not exist")
+    if not path.exists():
+        raise FileNotFoundError(f"measurement file or folder {path} does not exist")
+    kind = ipag.file_kind(path)
+    if kind == "csv":
+        if convention is not None:
+            raise MeasurementError(
+                f"{path}: convention = {convention!r} applies to IPAG files; a CSV file is in "
+                "the project convention (signed theta_o, light at azimuth 0)")
+        return _load_csv(path)
+    return ipag.load_ipag(path, convention=convention, zero_error=zero_error)
+
+
+def _load_csv(path: Path) -> Measurements:
+    """Read the project's CSV format (see the module docstring)."""
     comments: list[str] = []
     rows: list[tuple[int, list[str]]] = []
     header: list[str] | None = None
@@ -160,7 +265,6 @@ def load_measurements(path: str | Path) -> Measurements:
         raise MeasurementError(f"{path}: no data rows")
 
     columns = {name: np.empty(len(rows)) for name in header}
-    seen: dict[tuple, int] = {}
     for k, (lineno, fields) in enumerate(rows):
         where = f"{path}, line {lineno}"
         if len(fields) != len(header):
@@ -176,30 +280,31 @@ def load_measurements(path: str | Path) -> Measurements:
                 raise MeasurementError(f"{where}, column '{name}': '{text}' is not finite")
             _check_range(name, value, where)
             columns[name][k] = value
-    # duplicates: same directions (theta_o, phi) and (-theta_o, phi + 180) coincide
-    wi, wo = gonio_directions(columns["theta_i"], columns["theta_o"], columns["phi"])
-    keys = np.round(np.concatenate([wi, wo, columns["wavelength"][:, None]], axis=1), 9)
-    for k, key in enumerate(map(tuple, keys)):
-        if key in seen:
-            raise MeasurementError(f"{path}, line {rows[k][0]}: duplicate of line {seen[key]} "
-                                   "(same incidence, viewing direction and wavelength)")
-        seen[key] = rows[k][0]
     return Measurements(columns["theta_i"], columns["theta_o"], columns["phi"],
                         columns["wavelength"], columns["brf"], columns.get("sigma"),
-                        comments, str(path))
+                        comments, str(path), "project")
 
 
 def save_measurements(path: str | Path, data: Measurements,
-                      comments: list[str] | None = None) -> Path:
-    """Write ``data`` in the CSV format above (``comments`` become ``#`` lines first)."""
+                      comments: list[str] | None = None, digits: int | None = 10,
+                      newline: str = "\n") -> Path:
+    """Write ``data`` in the CSV format above (``comments`` become ``#`` lines first).
+
+    Args:
+        digits: significant digits of every number; ``None`` writes the shortest text that
+            reads back exactly (no value changes on a round trip).
+        newline: line ending, ``"\\n"``, ``"\\r\\n"`` or ``"\\r"``.
+    """
+    if newline not in ("\n", "\r\n", "\r"):
+        raise ValueError(f"newline = {newline!r}: valid values are '\\n', '\\r\\n', '\\r'")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = list(REQUIRED) + (["sigma"] if data.sigma is not None else [])
     with path.open("w", newline="", encoding="utf-8") as fh:
         for c in (comments if comments is not None else data.comments):
-            fh.write(f"# {c}\n")
-        writer = csv.writer(fh)
+            fh.write(f"# {c}{newline}")
+        writer = csv.writer(fh, lineterminator=newline)
         writer.writerow(names)
         for i in range(len(data)):
-            writer.writerow([f"{getattr(data, n)[i]:.10g}" for n in names])
+            writer.writerow([format_number(getattr(data, n)[i], digits) for n in names])
     return path
