@@ -24,13 +24,11 @@ def arg_parser(doc: str) -> argparse.ArgumentParser:
 
 
 def use_variant(variant: str) -> None:
-    """Select a Mitsuba variant and make the powder plugin findable in it."""
-    import mitsuba as mi
+    """Select a Mitsuba variant (it stays selected) and make the powder plugin findable in it
+    (:func:`mitsuba_powder.variants.set_variant`)."""
+    from mitsuba_powder.variants import set_variant
 
-    mi.set_variant(variant)
-    import mitsuba_powder
-
-    mitsuba_powder.register()
+    set_variant(variant)
 
 
 def barh_figure(path: Path, labels, values, colors, xlabel: str, log: bool = False,

@@ -151,7 +151,7 @@ def _sampling_row(name, out) -> dict:
 # ----------------------------------------------------------------------------- variants
 
 def variants_showcase(res, spp, ref_spp) -> tuple[list[dict], dict]:
-    from mitsuba_powder.photo import delta_e_2000
+    from mitsuba_powder.photo_comparison import delta_e_2000
 
     w, h = res
     rows, images = [], {}
@@ -184,7 +184,7 @@ def variants_gonio(spp: int, res: int, quick: bool) -> list[dict]:
     powder with a Mie albedo) in each variant: render time, and the RGB BRF's colour error
     against the spectral one (analytic values, CIEDE2000, white 1)."""
     from mitsuba_powder.gonio import render_gonio
-    from mitsuba_powder.photo import delta_e_2000
+    from mitsuba_powder.photo_comparison import delta_e_2000
     from mitsuba_powder.protocols import protocol_geometries
 
     ti, to, ph = protocol_geometries("backscatter" if quick else "shadows,backscatter")
@@ -210,7 +210,7 @@ def variants_powder_colour() -> list[dict]:
     """BRF colour of each showcase powder on the gonio patch: RGB variant (3 wavelengths)
     against the spectral film value, CIEDE2000 (linear sRGB reflectance factors, white 1)."""
     from mitsuba_powder.gonio import render_gonio
-    from mitsuba_powder.photo import delta_e_2000
+    from mitsuba_powder.photo_comparison import delta_e_2000
 
     rows = []
     for name, props in SAMPLES.items():
@@ -263,7 +263,7 @@ def main() -> None:
     args = parser.parse_args()
     q = args.quick
     gres, gspp = (4, 4) if q else (64, 64)
-    mi.set_variant("llvm_ad_rgb")
+    use_variant("llvm_ad_rgb")
     sampling = []
     for cone, props in (("sharp", SHARP), ("broad", BROAD)):
         for where, geom in (("back-scattering", (30.0, 30.0, 0.0)),

@@ -104,12 +104,21 @@ def tables(results: Path) -> dict[str, str]:
         ("variant", "variant", "s"), ("g", "load, tau_o given (ms)", ".2f"),
         ("f", "load, tau_o from Fresnel (ms)", ".2f"), ("d", "Fresnel table (ms)", ".2f")])
     fit = load("fit")
-    out["fit"] = md_table(fit["rows"], [
+    before = {r["case"]: r for r in fit["meta"].get("before", [])}
+    out["fit"] = md_table([{**r, "before_s": before.get(r["case"], {}).get("seconds"),
+                            "before_evaluations": before.get(r["case"], {}).get("evaluations")}
+                           for r in fit["rows"]], [
         ("protocol", "protocol", "s"), ("geometries", "geometries", "d"),
         ("wavelengths", "wavelengths", "d"), ("free", "free", "d"), ("starts", "starts", "d"),
-        ("evaluations", "evaluations", "d"), ("seconds", "s", ".2f"),
-        ("ms_per_evaluation", "ms / evaluation", ".3f"),
-        ("chi2_per_point", "chi2 / N", ".3f")])
+        ("agreeing", "starts at the best", "d"), ("evaluations", "evaluations", "d"),
+        ("seconds", "s", ".2f"), ("seconds_first", "s (first fit)", ".2f"),
+        ("chi2_per_point", "chi2 / N", ".3f"), ("max_abs_z", "max abs z", ".2f"),
+        ("before_s", "before: s", ".2f"), ("before_evaluations", "before: evaluations", "d")])
+    out["fit_ptfe"] = md_table(fit["meta"].get("ptfe", []), [
+        ("wavelength", "nm", "g"), ("seed", "seed", "d"), ("loss", "loss", ".6f"),
+        ("reference_loss", "reference best", ".6f"), ("ratio", "loss / best", ".5f"),
+        ("rmse", "RMSE BRF", ".5f"), ("agreeing", "starts at the best", "d"),
+        ("seconds", "s", ".2f")])
     mem = load("memory")
     out["memory"] = md_table(mem["rows"], [
         ("job", "job", "s"), ("what", "what", "s"), ("peak_rss_mib", "peak RSS (MiB)", ".0f"),

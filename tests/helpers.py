@@ -22,15 +22,18 @@ SPECTRUM_RANGE = (360.0, 830.0)
 
 
 def use_variant(variant: str) -> None:
-    """Select a Mitsuba variant (skipping the test when it cannot run here) and load the plugin."""
+    """Select a Mitsuba variant for the rest of the test (skipping the test when it cannot run
+    here) through the library's :func:`mitsuba_powder.variants.set_variant`, which also makes
+    the plugin findable."""
     if variant not in mi.variants():
         pytest.skip(f"variant {variant} is not in this mitsuba build")
     if variant.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
         pytest.skip("no CUDA device on this machine")
     if variant.startswith("llvm") and not dr.has_backend(dr.JitBackend.LLVM):
         pytest.skip("no usable LLVM backend")
-    mi.set_variant(variant)
-    import mitsuba_powder  # noqa: F401  (registers the plugin folder)
+    from mitsuba_powder.variants import set_variant
+
+    set_variant(variant)
 
 
 def is_scalar() -> bool:

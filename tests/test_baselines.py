@@ -83,11 +83,11 @@ def test_compare_models_cli(tmp_path, capsys):
                                                    seed=4))
     assert main(["compare-models", str(tmp_path / "d.csv"), "--set", "radius=0.05",
                  "--starts", "1", "--out", str(tmp_path / "cmp")]) == 0
-    rows = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    rows = json.loads((tmp_path / "cmp" / "model_comparison.json").read_text())
     assert {r["model"] for r in rows} == {"powder", "lambertian", "oren_nayar", "rtlsr", "hapke"}
     best = min(rows, key=lambda r: r["relative_rmse_percent"])
     assert best["model"] == "powder"  # the data come from the powder model
-    assert "| 700 | powder |" in (tmp_path / "cmp" / "comparison.md").read_text()
+    assert "| 700 | powder |" in (tmp_path / "cmp" / "model_comparison.md").read_text()
     with pytest.raises(ValueError, match="unknown model"):
         fit_baseline("phong", baseline_data("lambertian", {"rho": 0.5}))
     with pytest.raises(ValueError, match="starts = 0 is out of range"):

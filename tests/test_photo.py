@@ -10,8 +10,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mitsuba_powder import photo as P
+from mitsuba_powder import photo_comparison as P
 from mitsuba_powder.cli import main
+from mitsuba_powder.variants import use_variant
 
 
 def smooth_image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
@@ -26,12 +27,12 @@ def smooth_image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
 
 
 def write_png(path, linear: np.ndarray, bits: int) -> None:
-    mi.set_variant("scalar_rgb")
     enc = colour.cctf_encoding(np.clip(linear, 0, 1), function="sRGB")
     top = 2**bits - 1
     dtype = np.uint8 if bits == 8 else np.uint16
-    mi.Bitmap((enc * top + 0.5).astype(dtype), pixel_format=mi.Bitmap.PixelFormat.RGB).write(
-        str(path))
+    with use_variant("scalar_rgb"):
+        mi.Bitmap((enc * top + 0.5).astype(dtype),
+                  pixel_format=mi.Bitmap.PixelFormat.RGB).write(str(path))
 
 
 def test_read_exr_and_png(tmp_path):
@@ -138,7 +139,7 @@ def test_bad_input(tmp_path):
         P.compare_images(a, np.zeros_like(a))
 
 
-def test_cli_compare(tmp_path, capsys):
+def test_cli_compare_photo(tmp_path, capsys):
     camera = np.array([[0.9, 0.1, 0.0], [0.05, 0.9, 0.05], [0.0, 0.1, 0.8]])
     img, corners = chart_image(camera)
     render = img @ np.linalg.inv(camera).T  # what a perfect render of the scene would be
@@ -146,16 +147,43 @@ def test_cli_compare(tmp_path, capsys):
     write_png(tmp_path / "photo.png", img * 0.5, 16)
     chart = " ".join(f"{x},{y}" for x, y in corners)
     out = tmp_path / "out"
-    assert main(["compare", str(tmp_path / "render.exr"), str(tmp_path / "photo.png"),
+    assert main(["compare-photo", str(tmp_path / "render.exr"), str(tmp_path / "photo.png"),
                  "--chart", chart, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "ColorChecker calibration" in text and "CIEDE2000" in text
-    stats = json.loads((out / "comparison.json").read_text())
+    stats = json.loads((out / "photo_comparison.json").read_text())
     assert stats["mean"] < 1.0 and stats["chart_delta_e_mean"] < 1.0
     assert (out / "delta_e.png").is_file() and (out / "side_by_side.png").is_file()
-    assert main(["compare", str(tmp_path / "render.exr"), str(tmp_path / "photo.png"),
+    assert main(["compare-photo", str(tmp_path / "render.exr"), str(tmp_path / "photo.png"),
                  "--chart", "1,2 3,4", "--out", str(out)]) == 2
     assert "--chart '1,2 3,4'" in capsys.readouterr().err
+
+
+def test_photo_and_model_comparisons_do_not_overwrite_each_other(tmp_path, capsys):
+    """compare-photo and compare-models have their own default folders, and their own file
+    names when given the same --out."""
+    from mitsuba_powder.cli import build_parser
+    from mitsuba_powder.model_comparison import write_comparison
+
+    parser = build_parser()
+    assert parser.parse_args(["compare-photo", "r.exr", "p.png"]).out == "photo_compare"
+    assert parser.parse_args(["compare-models", "d.csv"]).out == "model_compare"
+    with pytest.raises(SystemExit):  # the old, ambiguous name is gone
+        parser.parse_args(["compare", "r.exr", "p.png"])
+    capsys.readouterr()
+    out = tmp_path / "same"
+    rows = [{"model": "lambertian", "wavelength": 700.0, "parameters": 1,
+             "relative_rmse_percent": 5.0, "max_abs_relative_error_percent": 9.0,
+             "rmse_brf": 0.01, "seconds": 0.1, "fitted": {"rho": 0.5}}]
+    table = write_comparison(rows, out)
+    render = smooth_image()
+    P.write_exr(tmp_path / "render.exr", render)
+    P.write_exr(tmp_path / "photo.exr", render * 0.5)
+    assert main(["compare-photo", str(tmp_path / "render.exr"), str(tmp_path / "photo.exr"),
+                 "--out", str(out)]) == 0
+    assert json.loads((out / "model_comparison.json").read_text()) == rows
+    assert "| 700 | lambertian | 1 |" in table.read_text()
+    assert json.loads((out / "photo_comparison.json").read_text())["mean"] < 0.01
 
 
 def test_clipped_photo_pixels_are_left_out(tmp_path):

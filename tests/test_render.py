@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from helpers import use_variant
+from mitsuba_powder import variants
 from mitsuba_powder.cli import main
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"
@@ -78,10 +79,11 @@ def test_scene_pixels_match_closed_form(variant):
     if variant.startswith("scalar"):
         want = expected_image(scene, width, height, light, 3.0)
     else:
-        mi.set_variant("scalar_rgb")
-        want = expected_image(mi.load_file(str(SCENE), res_x=str(width), res_y=str(height),
-                                           rfilter="box"), width, height, light, 3.0)
-        mi.set_variant(variant)
+        with variants.use_variant("scalar_rgb"):
+            want = expected_image(mi.load_file(str(SCENE), res_x=str(width),
+                                               res_y=str(height), rfilter="box"),
+                                  width, height, light, 3.0)
+        assert mi.variant() == variant
     inside = np.all(np.isfinite(want), axis=2) & np.all(want > 0, axis=2)
     assert inside.sum() > 0.3 * width * height
     lambert = np.isclose(want[..., 0], want[..., 2]) & inside

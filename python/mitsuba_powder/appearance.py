@@ -8,13 +8,13 @@ turns the spectrum into CIE XYZ, sRGB and CIELAB under D65.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from .variants import use_variant
 
 #: Default wavelength grid (nm) of the reported spectra
 WAVELENGTHS_NM = np.arange(360.0, 831.0, 5.0)
@@ -59,18 +59,6 @@ class PowderColour:
         """sRGB clipped to the gamut and quantised to 8 bits."""
         c = np.clip(self.srgb, 0.0, 1.0)
         return tuple(int(round(v * 255)) for v in c)
-
-
-@contextmanager
-def _variant(name: str) -> Iterator[None]:
-    """Switch Mitsuba's variant for the duration of a block, then restore it."""
-    previous = mi.variant()
-    mi.set_variant(name)
-    try:
-        yield
-    finally:
-        if previous is not None:
-            mi.set_variant(previous)
 
 
 def _spectral_variant() -> str:
@@ -208,12 +196,9 @@ def powder_colour(
     if radius2 is not None:
         props.update(radius2=radius2, fraction2=fraction2)
 
-    from . import register
-
     n = len(wavelengths_nm)
     groups = _groups(wavelengths_nm)
-    with _variant(_spectral_variant()):
-        register()
+    with use_variant(_spectral_variant()):
         bsdf = mi.load_dict(props)
         uses_mie = "albedo" not in properties
         get = lambda name: _attribute(bsdf, name, groups, n)  # noqa: E731

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit import ParamSpec
 from .measurements import Measurements
+from .optimise import ParamSpec, finite_difference_jacobian, multistart, sobol_starts
 
 
 def _angles(wi: np.ndarray, wo: np.ndarray):
@@ -129,75 +129,58 @@ class BaselineFit:
     loss: float
     evaluations: int
     seconds: float
+    agreeing: int = 0
 
 
-def fit_baseline(model: str, data: Measurements, starts: int = 4, seed: int = 0
-                 ) -> list[BaselineFit]:
-    """Fit a baseline at each wavelength of ``data`` (weighted least squares on the BRF, nlopt
-    L-BFGS with bounds from the default start, then ISRES + L-BFGS global starts; gradients by
-    central differences)."""
-    import nlopt
+class _BaselineProblem:
+    """Weighted BRF residuals of a NumPy baseline, batched over parameter sets (for
+    :func:`mitsuba_powder.optimise.multistart`); the Jacobian by central differences."""
 
+    def __init__(self, func: Callable, specs: dict[str, ParamSpec], wi: np.ndarray,
+                 wo: np.ndarray, brf: np.ndarray, weights: np.ndarray):
+        self.func, self.specs, self.names = func, list(specs.values()), list(specs)
+        self.wi, self.wo, self.brf, self.weights = wi, wo, brf, weights
+        self.lower = np.array([s.to_y(s.lower) for s in self.specs], dtype=np.float64)
+        self.upper = np.array([s.to_y(s.upper) for s in self.specs], dtype=np.float64)
+        self.jacobian = finite_difference_jacobian(self.residuals, self.lower, self.upper)
+
+    def parameters(self, y: np.ndarray) -> dict:
+        return {n: float(s.to_x(v)) for n, s, v in zip(self.names, self.specs, y)}
+
+    def residuals(self, y: np.ndarray) -> np.ndarray:
+        out = np.empty((len(y), len(self.brf)))
+        with np.errstate(all="ignore"):
+            for b, row in enumerate(np.atleast_2d(y)):
+                out[b] = (self.func(self.parameters(row), self.wi, self.wo) - self.brf) \
+                    * self.weights
+        # a parameter set where the model is undefined gets a huge, finite cost
+        return np.where(np.isfinite(out), out, 1e10)
+
+
+def fit_baseline(model: str, data: Measurements, starts: int = 32, seed: int = 0,
+                 polish: int = 2) -> list[BaselineFit]:
+    """Fit a baseline at each wavelength of ``data``: weighted least squares on the BRF with
+    the package's optimiser (:func:`mitsuba_powder.optimise.multistart`: Sobol starts, batched
+    Levenberg-Marquardt, the best ``polish`` end points refined by ``scipy``), Jacobian by
+    central differences."""
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; models: {', '.join(MODELS)}")
     if starts < 1:
         raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
     func, specs = MODELS[model]
-    names = list(specs)
-    to_y = np.array([s.log for s in specs.values()])
-    lower = np.array([math.log10(s.lower) if s.log else s.lower for s in specs.values()])
-    upper = np.array([math.log10(s.upper) if s.log else s.upper for s in specs.values()])
-    start = np.array([math.log10(s.start) if s.log else s.start for s in specs.values()])
     wi_all, wo_all = data.directions()
     weights = 1.0 / data.sigma if data.sigma is not None else np.ones(len(data))
     out = []
-    rng = np.random.default_rng(seed)
     for lam in data.wavelengths():
         t0 = time.perf_counter()
         sel = data.wavelength == lam
-        wi, wo, brf, w = wi_all[sel], wo_all[sel], data.brf[sel], weights[sel]
-        count = [0]
-
-        def loss_of(y, wi=wi, wo=wo, brf=brf, w=w, count=count):
-            x = np.where(to_y, 10.0 ** y, y)
-            r = (func(dict(zip(names, x)), wi, wo) - brf) * w
-            count[0] += 1
-            value = float(np.sum(r * r))
-            return value if np.isfinite(value) else 1e300
-
-        def objective(y, grad, loss_of=loss_of):
-            value = loss_of(y)
-            if grad.size:
-                for j in range(len(y)):
-                    h = 1e-6 * max(1.0, abs(y[j]))
-                    e = np.zeros(len(y))
-                    e[j] = h
-                    grad[j] = (loss_of(np.clip(y + e, lower, upper)) -
-                               loss_of(np.clip(y - e, lower, upper))) / (2 * h)
-            return value
-
-        best = (math.inf, start)
-        for k in range(starts):
-            y0 = start if k == 0 else rng.uniform(lower, upper)
-            for algorithm, budget in ([] if k == 0 else [(nlopt.GN_ISRES, 1500)]) + [
-                    (nlopt.LD_LBFGS, 500)]:
-                opt = nlopt.opt(algorithm, len(names))
-                opt.set_lower_bounds(lower)
-                opt.set_upper_bounds(upper)
-                opt.set_min_objective(objective)
-                opt.set_maxeval(budget)
-                opt.set_ftol_rel(1e-12)
-                if algorithm == nlopt.GN_ISRES:
-                    nlopt.srand(seed + k)
-                try:
-                    y0 = opt.optimize(np.clip(y0, lower, upper))
-                except Exception:
-                    pass  # round-off stop: keep the last point
-                value = loss_of(y0)
-                if value < best[0]:
-                    best = (value, np.array(y0))
-        x = np.where(to_y, 10.0 ** best[1], best[1])
-        params = {n: float(v) for n, v in zip(names, x)}
-        out.append(BaselineFit(model, float(lam), params, func(params, wi, wo), best[0],
-                               count[0], time.perf_counter() - t0))
+        problem = _BaselineProblem(func, specs, wi_all[sel], wo_all[sel], data.brf[sel],
+                                   weights[sel])
+        y0 = sobol_starts(problem.lower, problem.upper, starts, seed)
+        y0[0] = [s.to_y(s.start) for s in problem.specs]
+        result = multistart(problem, y0, polish_count=polish)
+        params = problem.parameters(result.y)
+        out.append(BaselineFit(model, float(lam), params, func(params, wi_all[sel], wo_all[sel]),
+                               result.cost, result.evaluations, time.perf_counter() - t0,
+                               result.agreeing))
     return out

@@ -78,14 +78,38 @@ def _value(text: str):
         return text
 
 
+def _load_data(path: str, args: argparse.Namespace):
+    """Load measurements (CSV, IPAG file or folder) and print what the loader did."""
+    from .measurements import load_measurements
+
+    data = load_measurements(path, convention=args.convention, zero_error=args.zero_error)
+    for line in data.comments:
+        if line.startswith("loader: "):
+            print(line[len("loader: "):])
+    if data.convention == "project":
+        g = data.geometry_summary()
+        print(f"{path}: {g['rows']} measurements, {g['geometries']} unique geometries "
+              f"(incidence, viewing direction, wavelength), {g['replicated_rows']} replicated")
+    return data
+
+
+def _add_data_options(p: argparse.ArgumentParser) -> None:
+    """Options of the commands that read measurement files."""
+    p.add_argument("--convention", choices=("signed", "physical"), default=None,
+                   help="IPAG files: angle convention (default: decided from the file; "
+                        "see docs/fitting.md, 'Files from IPAG goniometers and SSHADE')")
+    p.add_argument("--zero-error", choices=("raise", "unweighted", "skip"), default="raise",
+                   help="IPAG files where some errors are zero or missing: stop (raise), "
+                        "fit unweighted, or skip those values")
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .fit import default_free, fit, predict
-    from .measurements import load_measurements
-    from .report import write_report
+    from .fit_report import write_report
 
-    data = load_measurements(args.data)
+    data = _load_data(args.data, args)
     if args.wavelength:
         keep = np.isin(data.wavelength, args.wavelength)
         missing = sorted(set(args.wavelength) - set(data.wavelengths().tolist()))
@@ -106,12 +130,14 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                              f"({np.unique(data.theta_i).tolist()})")
         held_out = data.subset(~mask)
         data = data.subset(mask)
-    free = [n.strip() for n in args.free.split(",")] if args.free else default_free(data)
     fixed = dict(_parse_define(d) for d in args.set)
     fixed = {k: _value(v) for k, v in fixed.items()}
+    free = ([n.strip() for n in args.free.split(",")] if args.free else
+            default_free(data, fixed))
     print(f"fitting {len(data)} measurements at {data.wavelengths().tolist()} nm; "
           f"free: {', '.join(free)}; fixed: {fixed or 'plugin defaults'}")
-    result = fit(data, free, fixed, starts=args.starts, seed=args.seed, progress=print)
+    result = fit(data, free, fixed, starts=args.starts, polish=args.polish, seed=args.seed,
+                 progress=print)
     held = None
     if held_out is not None and len(held_out):
         held = (held_out, predict(result, held_out))
@@ -124,8 +150,18 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             print(f"  {k:22s} = {value:.6g} +- {result.uncertainties[k]:.3g}")
     print(f"RMSE(BRF) {result.rmse():.4g}, relative RMSE {result.relative_rmse_percent():.2f} %, "
           f"{result.evaluations} evaluations in {result.seconds:.1f} s")
+    if result.chi2_per_point is not None:
+        print(f"chi2/N = {result.chi2_per_point:.4g} (the data's sigma)")
+    print(f"{result.agreeing} of {len(result.starts)} starts reached the best loss (within 1 %)")
+    for b in result.radius_branches:
+        print(f"  radius {b['radius']:.5g} um (albedo within 1-sigma for "
+              f"{b['lower']:.5g}-{b['upper']:.5g} um)")
+    if "radius_note" in result.optics:
+        print(f"  {result.optics['radius_note']}")
+    for line in result.warnings:
+        print(f"warning: {line}")
     if held is not None:
-        from .report import statistics
+        from .fit_report import statistics
 
         st = statistics(held[1], held[0])
         print(f"prediction of {st['n']} held-out measurements: relative RMSE "
@@ -150,18 +186,24 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     data = Measurements(cat("theta_i"), cat("theta_o"), cat("phi"), cat("wavelength"),
                         cat("brf"), cat("sigma") if args.noise > 0 else None,
                         parts[0].comments + [f"parameters from {args.params}"], "synthetic")
-    save_measurements(args.out, data)
-    print(f"wrote {len(data)} synthetic measurements to {args.out}")
+    if args.format == "ipag":
+        from .ipag import save_ipag
+
+        save_ipag(args.out, data, layout=args.layout, sample=args.sample,
+                  convention=args.convention)
+    else:
+        save_measurements(args.out, data, digits=None)
+    how = f", {args.layout} layout, {args.convention} convention" if args.format == "ipag" else ""
+    print(f"wrote {len(data)} synthetic measurements to {args.out} ({args.format}{how})")
     return 0
 
 
-def _cmd_compare(args: argparse.Namespace) -> int:
+def _cmd_compare_models(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .compare import compare_models, write_comparison
-    from .measurements import load_measurements
+    from .model_comparison import compare_models, write_comparison
 
-    data = load_measurements(args.data)
+    data = _load_data(args.data, args)
     if args.wavelength:
         data = data.subset(np.isin(data.wavelength, args.wavelength))
         if not len(data):
@@ -173,14 +215,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     rows = compare_models(data, free, fixed, starts=args.starts)
     path = write_comparison(rows, args.out)
     print(path.read_text())
-    print(f"wrote {path} and comparison.json")
+    print(f"wrote {path} and {path.with_suffix('.json').name}")
     return 0
 
 
 def _cmd_render_gonio(args: argparse.Namespace) -> int:
     from .gonio import render_gonio, render_measurements
     from .gonio_report import write_gonio_report
-    from .measurements import load_measurements
     from .params import load_properties
     from .protocols import protocol_geometries
 
@@ -190,7 +231,7 @@ def _cmd_render_gonio(args: argparse.Namespace) -> int:
     if args.data:
         if args.protocol:
             raise ValueError("give --data or --protocol, not both")
-        data = load_measurements(args.data)
+        data = _load_data(args.data, args)
         if args.wavelength is not None:
             data = data.subset(data.wavelength == args.wavelength)
             if not len(data):
@@ -231,7 +272,7 @@ def _corners(text: str):
 
 
 def _cmd_compare_photo(args: argparse.Namespace) -> int:
-    from .photo import compare_images, read_image, write_report
+    from .photo_comparison import compare_images, read_image, write_report
 
     render = read_image(args.render, args.render_encoding)
     photo = read_image(args.photo, args.photo_encoding)
@@ -306,7 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_colour)
 
     p = sub.add_parser("fit", help="fit the powder model to goniometer measurements")
-    p.add_argument("data", help="measurement CSV (see mitsuba_powder.measurements)")
+    p.add_argument("data", help="measurement CSV, IPAG file, or folder of IPAG "
+                   "single-geometry files (see mitsuba_powder.measurements)")
     p.add_argument("--wavelength", type=float, nargs="+", default=None,
                    help="fit only these wavelengths, nm (several: a joint fit)")
     p.add_argument("--free", default=None,
@@ -317,9 +359,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a fixed plugin property, e.g. --set tau_o=0.6667 (repeatable)")
     p.add_argument("--fit-incidences", default=None, metavar="DEG,DEG,...",
                    help="fit only these incidences and report the prediction of the others")
-    p.add_argument("--starts", type=int, default=4, help="starts (1: local only)")
+    p.add_argument("--starts", type=int, default=64,
+                   help="starts of the global phase (Sobol design; with the radius free, on a "
+                        "log grid of radii)")
+    p.add_argument("--polish", type=int, default=4,
+                   help="distinct end points of the global phase polished (scipy)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="fit_out", help="output folder (fit.json, figures)")
+    _add_data_options(p)
     p.set_defaults(func=_cmd_fit)
 
     p = sub.add_parser("simulate", help="simulate measurements at protocol geometries")
@@ -330,26 +377,39 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wavelength", type=float, nargs="+", default=None, help="nm (700)")
     p.add_argument("--noise", type=float, default=0.0, help="relative 1-sigma noise")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, help="output CSV")
+    p.add_argument("--out", required=True,
+                   help="output CSV, IPAG file (--layout multi) or folder (--layout single)")
+    p.add_argument("--format", choices=("csv", "ipag"), default="csv",
+                   help="csv (project format) or ipag (IPAG goniometer text)")
+    p.add_argument("--layout", choices=("multi", "single"), default="multi",
+                   help="ipag: one multi-geometry file, or a folder of single-geometry files")
+    p.add_argument("--convention", choices=("physical", "signed"), default="physical",
+                   help="ipag: angles as newer files and SSHADE (physical) or older files "
+                        "(signed; plane of incidence only)")
+    p.add_argument("--sample", default="synthetic", help="ipag: sample name in the file")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("compare-models",
                        help="fit the powder model and four baselines to the same data")
-    p.add_argument("data", help="measurement CSV")
+    p.add_argument("data", help="measurement CSV, IPAG file or folder")
     p.add_argument("--wavelength", type=float, nargs="+", default=None, help="nm")
     p.add_argument("--free", default=None, help="powder properties to fit (as in fit)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="fixed powder property (repeatable)")
-    p.add_argument("--starts", type=int, default=4)
-    p.add_argument("--out", default="compare_out", help="output folder")
-    p.set_defaults(func=_cmd_compare)
+    p.add_argument("--starts", type=int, default=64,
+                   help="starts of each model's global phase")
+    p.add_argument("--out", default="model_compare",
+                   help="output folder (model_comparison.md and .json)")
+    _add_data_options(p)
+    p.set_defaults(func=_cmd_compare_models)
 
     p = sub.add_parser("render-gonio",
                        help="render the patch at gonio geometries; rendered vs analytic BRF")
     p.add_argument("--protocol", default=None,
                    help="comma-separated protocols: shadows, backscatter (default both)")
     p.add_argument("--data", default=None,
-                   help="measurement CSV: render its geometries and wavelengths (mono)")
+                   help="measurement CSV, IPAG file or folder: render its geometries and "
+                        "wavelengths (mono)")
     p.add_argument("--params", default=None, help="JSON of plugin properties or a fit.json")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="plugin property (repeatable), e.g. --set extinction=2")
@@ -365,9 +425,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--strategy", default="emitter", help="emitter, bsdf or mis")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="gonio_out", help="output folder")
+    _add_data_options(p)
     p.set_defaults(func=_cmd_render_gonio)
 
-    p = sub.add_parser("compare", help="compare a render with a photo (CIEDE2000)")
+    p = sub.add_parser("compare-photo", help="compare a render with a photo (CIEDE2000)")
     p.add_argument("render", help="rendered image (.exr, .png, .jpg)")
     p.add_argument("photo", help="photograph (.exr, .png, .jpg; 8 or 16 bit)")
     for who in ("render", "photo"):
@@ -386,7 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--saturation", type=float, default=None,
                    help="leave out photo pixels with a channel >= this linear value (default "
                         "0.99 for PNG/JPEG, none for EXR; negative: keep all)")
-    p.add_argument("--out", default="compare_out", help="output folder")
+    p.add_argument("--out", default="photo_compare",
+                   help="output folder (photo_comparison.json, delta_e.png, side_by_side.png)")
     p.set_defaults(func=_cmd_compare_photo)
     return parser
 

@@ -18,7 +18,7 @@ import mitsuba as mi
 import numpy as np
 
 from .gonio import eval_channels, film_dict, film_weights, patch_dict, sensor_dict
-from .model import variant as use_variant
+from .variants import check_variant, use_variant
 
 STRATEGIES = {"bsdf": (0, 1), "mis": (1, 1)}
 
@@ -93,8 +93,7 @@ def white_furnace(properties: dict, theta_o=(0.0, 45.0, 75.0), *,
     if strategy not in STRATEGIES:
         raise ValueError(f"strategy = {strategy!r} is not valid; choose one of "
                          f"{tuple(STRATEGIES)}")
-    if variant not in mi.variants():
-        raise ValueError(f"variant = {variant!r} is not available")
+    check_variant(variant)
     if spp < 1 or resolution < 2:
         raise ValueError(f"spp = {spp}, resolution = {resolution}: valid ranges are "
                          "spp >= 1, resolution >= 2")

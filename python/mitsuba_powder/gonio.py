@@ -28,7 +28,7 @@ import mitsuba as mi
 import numpy as np
 
 from .measurements import Measurements, gonio_directions
-from .model import variant as use_variant
+from .variants import check_variant, use_variant
 
 SOURCE_DISTANCE = 1.0e4  # scene units; the visible patch is ~3 units wide
 CAMERA_DISTANCE = 10.0
@@ -185,9 +185,7 @@ def patch_dict(properties: dict) -> dict:
 
 
 def _check(variant: str, spp: int, resolution: int, source_radius: float) -> None:
-    if variant not in mi.variants():
-        raise ValueError(f"variant = {variant!r} is not available; choose one of "
-                         f"{mi.variants()}")
+    check_variant(variant)
     if spp < 1:
         raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
     if resolution < 2:

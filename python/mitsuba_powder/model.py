@@ -1,40 +1,26 @@
 """BRF of the powder plugin at measurement geometries, vectorised, differentiable.
 
-One ``llvm_ad_mono`` plugin instance per distinct wavelength (``wavelength`` property), each
-evaluated over all of that wavelength's geometries in one call. Any wavelength the optical
-constants cover works (e.g. 351 and 1064 nm for PTFE).
+- :class:`PowderBRF`: the plugin as a user loads it, one ``llvm_ad_mono`` instance per distinct
+  wavelength (``wavelength`` property, Mie albedo from the radius), each evaluated over all of
+  that wavelength's geometries in one call. Simulation, prediction and reports use it.
+- :class:`BatchBRF`: the fit's engine: one ``llvm_ad_spectral`` instance evaluates every row
+  of every wavelength for a batch of parameter sets in one launch, with forward-mode
+  derivatives; it takes the albedo and tau_o as numbers (from
+  :mod:`mitsuba_powder.grain_optics`) and equals :class:`PowderBRF` to float precision.
+
+Any wavelength the optical constants cover works (e.g. 351 and 1064 nm for PTFE).
 """
 
 from __future__ import annotations
-
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from .measurements import Measurements
+from .variants import use_variant
 
 VARIANT = "llvm_ad_mono"
-
-
-@contextmanager
-def variant(name: str = VARIANT) -> Iterator[None]:
-    """Use a Mitsuba variant inside a block, restoring the caller's afterwards."""
-    previous = mi.variant()
-    if previous == name:  # nested use (e.g. each objective evaluation of a fit): free
-        yield
-        return
-    mi.set_variant(name)
-    from . import register
-
-    register()
-    try:
-        yield
-    finally:
-        if previous is not None:
-            mi.set_variant(previous)
 
 
 class PowderBRF:
@@ -53,7 +39,7 @@ class PowderBRF:
         self.properties = dict(properties)
         self.groups = []
         wi, wo = data.directions()
-        with variant():
+        with use_variant(VARIANT):
             for lam in data.wavelengths():
                 idx = np.nonzero(data.wavelength == lam)[0]
                 bsdf = mi.load_dict({"type": "powder", **self.properties,
@@ -73,7 +59,136 @@ class PowderBRF:
     def brf(self) -> np.ndarray:
         """BRF at every row of ``data`` (float64 copy of the float32 values)."""
         out = np.empty(len(self.data))
-        with variant():
+        with use_variant(VARIANT):
             for group in self.groups:
                 out[group[1]] = np.array(self.brf_dr(group), dtype=np.float64)
         return out
+
+
+
+#: Variant of :class:`BatchBRF`: each lane carries its own wavelength
+BATCH_VARIANT = "llvm_ad_spectral"
+
+#: Forward passes keep the graph's edges (several passes share one traced evaluation)
+_KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
+
+#: Plugin properties that describe the grains: :class:`BatchBRF` takes the albedo and tau_o
+#: they give as numbers (see :mod:`mitsuba_powder.grain_optics`)
+GRAIN_PROPERTIES = ("radius", "radius2", "fraction2", "material", "eta", "k")
+
+
+def _forward_grad(source, output):
+    """Tangent of ``output`` for a unit tangent on every entry of ``source`` (a variable or a
+    list of variables), the graph's edges kept for later passes."""
+    sources = source if isinstance(source, (list, tuple)) else [source]
+    for s in sources:
+        dr.set_grad(s, dr.ones(type(s), dr.shape(s)) if dr.is_tensor_v(s) else
+                    dr.full(type(s), 1.0, dr.width(s)))
+        dr.enqueue(dr.ADMode.Forward, s)
+    dr.traverse(dr.ADMode.Forward, flags=_KEEP_EDGES)
+    grad = dr.grad(output)
+    dr.eval(grad)
+    out = np.array(grad, dtype=np.float64)
+    dr.clear_grad(output)
+    return out
+
+
+class BatchBRF:
+    """The plugin's BRF at every measured row for ``batch`` parameter sets at once.
+
+    One plugin instance in ``llvm_ad_spectral`` evaluates every row of every set in one lane,
+    each lane at its own wavelength (all four spectral samples of a lane set to the row's
+    wavelength), so an evaluation is one Dr.Jit launch and each derivative one forward-mode
+    pass over the same traced graph. Per-set values of the ``varying`` properties are gathered
+    per lane. The albedo is a number per set and wavelength, given to the plugin as a
+    one-texel-per-value ``bitmap``; ``tau_o`` is given per lane (from the grain material, or
+    per set when it is fitted). Values equal a ``llvm_ad_mono`` instance at the row's
+    wavelength (``tests/test_fit.py``).
+
+    Args:
+        data: the geometries and wavelengths.
+        properties: plugin properties held fixed; ``albedo``, ``tau_o`` and the grain
+            properties are ignored (they come per call).
+        batch: number of parameter sets per evaluation.
+        varying: float properties set per parameter set (e.g. ``extinction``; ``tau_o`` too).
+    """
+
+    def __init__(self, data: Measurements, properties: dict, batch: int, varying: list[str]):
+        if batch < 1:
+            raise ValueError(f"batch = {batch} is out of range; valid range is [1, inf)")
+        self.data = data
+        self.batch = int(batch)
+        self.varying = list(varying)
+        self.wavelengths = data.wavelengths()
+        n, w = len(data), len(self.wavelengths)
+        fixed = {k: v for k, v in properties.items()
+                 if k not in GRAIN_PROPERTIES + ("albedo", "tau_o", "type", "wavelength")}
+        self.texels = max(self.batch * w, 2)  # a bitmap edited through mi.traverse: >= 2 x 2
+        wi, wo = data.directions()
+        lane_set = np.repeat(np.arange(self.batch), n)
+        lane_row = np.tile(np.arange(n), self.batch)
+        row_wl = np.searchsorted(self.wavelengths, data.wavelength)
+        texel = lane_set * w + row_wl[lane_row]
+        with use_variant(BATCH_VARIANT):
+            texture = {"type": "bitmap", "raw": True, "filter_type": "nearest",
+                       "wrap_mode": "clamp",
+                       "data": mi.TensorXf(np.full((2, self.texels, 1), 0.5, np.float32))}
+            self.bsdf = mi.load_dict({"type": "powder", **fixed, "albedo": texture,
+                                      "tau_o": 1.0})
+            self.params = mi.traverse(self.bsdf)
+            si = dr.zeros(mi.SurfaceInteraction3f, n * self.batch)
+            si.wi = mi.Vector3f(*[wi[lane_row, k].astype(np.float32) for k in range(3)])
+            si.uv = mi.Point2f(mi.Float(((texel + 0.5) / self.texels).astype(np.float32)),
+                               mi.Float(np.full(len(texel), 0.25, np.float32)))
+            lam = mi.Float(data.wavelength[lane_row].astype(np.float32))
+            si.wavelengths = mi.Spectrum(lam, lam, lam, lam)
+            self.si = si
+            self.wo = mi.Vector3f(*[wo[lane_row, k].astype(np.float32) for k in range(3)])
+            self.mu_o = mi.Float(wo[lane_row, 2].astype(np.float32))
+            self.lane_set = mi.UInt32(lane_set.astype(np.uint32))
+            self.lane_wavelength = mi.UInt32(row_wl[lane_row].astype(np.uint32))
+
+    def evaluate(self, values: dict[str, np.ndarray], albedo: np.ndarray,
+                 tau_o: np.ndarray | None = None, derivatives: bool = False
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """BRF (batch, N) and, with ``derivatives``, its derivatives (batch, N) with respect
+        to each varying property and to ``albedo`` (the albedo of each row's own wavelength).
+
+        Args:
+            values: varying property -> (batch,) values.
+            albedo: (batch, W) single-scattering albedo per set and wavelength (W: the
+                distinct wavelengths, sorted).
+            tau_o: (W,) extrapolation ratio per wavelength, unless ``tau_o`` is varying.
+        """
+        w = len(self.wavelengths)
+        albedo = np.asarray(albedo, dtype=np.float64).reshape(self.batch, w)
+        n = len(self.data)
+        grads: dict[str, np.ndarray] = {}
+        with use_variant(BATCH_VARIANT):
+            sources = {}
+            for name in self.varying:
+                v = np.asarray(values[name], dtype=np.float32).reshape(self.batch)
+                sources[name] = mi.Float(v)
+                if derivatives:
+                    dr.enable_grad(sources[name])
+                self.params[name] = dr.gather(mi.Float, sources[name], self.lane_set)
+            if "tau_o" not in self.varying:
+                if tau_o is None:
+                    raise ValueError("tau_o per wavelength is needed unless it is varying")
+                table = mi.Float(np.asarray(tau_o, dtype=np.float32).reshape(w))
+                self.params["tau_o"] = dr.gather(mi.Float, table, self.lane_wavelength)
+            texels = np.full(self.texels, albedo[-1, -1], np.float32)
+            texels[:self.batch * w] = albedo.ravel()
+            tex = mi.TensorXf(np.tile(texels[None, :, None], (2, 1, 1)))
+            if derivatives:
+                dr.enable_grad(tex)
+            self.params["albedo.data"] = tex
+            self.params.update()
+            value = self.bsdf.eval(mi.BSDFContext(), self.si, self.wo)
+            out = dr.pi * value[0] / self.mu_o
+            dr.eval(out)
+            brf = np.array(out, dtype=np.float64).reshape(self.batch, n)
+            if derivatives:
+                for name, src in list(sources.items()) + [("albedo", tex)]:
+                    grads[name] = _forward_grad(src, out).reshape(self.batch, n)
+        return brf, grads

@@ -9,6 +9,8 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
+from .variants import check_variant, use_variant
+
 
 @dataclass(frozen=True)
 class RenderResult:
@@ -81,6 +83,9 @@ def render_scene(
 ) -> RenderResult:
     """Render ``scene`` in ``variant`` and write ``output`` (.exr: linear; .png: sRGB 8 bit).
 
+    The caller's Mitsuba variant, if any, is selected again on return (see
+    :func:`mitsuba_powder.variants.use_variant`).
+
     Args:
         scene: scene XML file.
         output: image file to write; its folder is created.
@@ -93,31 +98,28 @@ def render_scene(
     Raises:
         FileNotFoundError: the scene file does not exist.
         ValueError: unknown variant, unsupported output extension or bad ``spp``.
+        RuntimeError: the variant's backend (CUDA, LLVM) cannot run here.
     """
     scene = Path(scene)
     output = Path(output)
     if not scene.is_file():
         raise FileNotFoundError(f"scene file {scene} does not exist")
-    if variant not in mi.variants():
-        raise ValueError(f"variant {variant!r} is not available; choose one of {mi.variants()}")
+    check_variant(variant)
     if output.suffix.lower() not in (".exr", ".png", ".jpg", ".hdr", ".pfm"):
         raise ValueError(f"output {output}: extension must be .exr, .png, .jpg, .hdr or .pfm")
     if spp is not None and spp < 1:
         raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
 
-    mi.set_variant(variant)
-    from . import register
-
-    register()
-    start = time.perf_counter()
-    loaded = mi.load_file(str(scene), **(defines or {}))
-    applied, missing = apply_properties(loaded, properties) if properties else ([], [])
-    image = mi.render(loaded, spp=spp or 0)
-    dr.eval(image)  # kernels run asynchronously: wait for them before stopping the clock
-    dr.sync_thread()
-    seconds = time.perf_counter() - start
-    output.parent.mkdir(parents=True, exist_ok=True)
-    mi.util.write_bitmap(str(output), image, write_async=False)
-    height, width = image.shape[0], image.shape[1]
+    with use_variant(variant):
+        start = time.perf_counter()
+        loaded = mi.load_file(str(scene), **(defines or {}))
+        applied, missing = apply_properties(loaded, properties) if properties else ([], [])
+        image = mi.render(loaded, spp=spp or 0)
+        dr.eval(image)  # kernels run asynchronously: wait for them before stopping the clock
+        dr.sync_thread()
+        seconds = time.perf_counter() - start
+        output.parent.mkdir(parents=True, exist_ok=True)
+        mi.util.write_bitmap(str(output), image, write_async=False)
+        height, width = image.shape[0], image.shape[1]
     return RenderResult(output, width, height, spp, variant, seconds, tuple(applied),
                         tuple(missing))

@@ -9,12 +9,12 @@ import numpy as np
 
 from .baselines import MODELS, fit_baseline
 from .fit import fit
+from .fit_report import statistics
 from .measurements import Measurements
-from .report import statistics
 
 
 def compare_models(data: Measurements, free: list[str] | None = None,
-                   fixed: dict | None = None, starts: int = 4) -> list[dict]:
+                   fixed: dict | None = None, starts: int = 64) -> list[dict]:
     """Fit the powder model (per wavelength) and every baseline; one row per model and
     wavelength with the number of parameters and the fit statistics."""
     if starts < 1:
@@ -39,10 +39,11 @@ def compare_models(data: Measurements, free: list[str] | None = None,
 
 
 def write_comparison(rows: list[dict], out_dir: str | Path) -> Path:
-    """comparison.json and comparison.md (a table per wavelength)."""
+    """``model_comparison.json`` (every row) and ``model_comparison.md`` (a table per
+    wavelength) in ``out_dir``; returns the path of the table."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "comparison.json").write_text(json.dumps(rows, indent=1))
+    (out_dir / "model_comparison.json").write_text(json.dumps(rows, indent=1))
     lines = ["| nm | model | parameters | rel. RMSE % | max rel. err. % | RMSE BRF | s |",
              "|---|---|---|---|---|---|---|"]
     for lam in sorted({r["wavelength"] for r in rows}):
@@ -52,7 +53,7 @@ def write_comparison(rows: list[dict], out_dir: str | Path) -> Path:
                          f"{r['relative_rmse_percent']:.2f} | "
                          f"{r['max_abs_relative_error_percent']:.1f} | {r['rmse_brf']:.4f} | "
                          f"{r['seconds']:.1f} |")
-    path = out_dir / "comparison.md"
+    path = out_dir / "model_comparison.md"
     path.write_text("\n".join(lines) + "\n")
     return path
 

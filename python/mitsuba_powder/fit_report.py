@@ -33,6 +33,22 @@ def statistics(model: np.ndarray, data: Measurements, mask: np.ndarray | None = 
             "max_abs_relative_error_percent": float(100 * np.max(np.abs(rel)))}
 
 
+def _geometry_summary(data: Measurements) -> dict:
+    """Rows, unique geometries and replicates (see ``Measurements.geometry_summary``)."""
+    summary = getattr(data, "geometry_summary", None)
+    return summary() if summary is not None else {"rows": len(data)}
+
+
+def _correlation(result: FitResult) -> dict | None:
+    """The correlation matrix of the free variables, as names and rows (None: undetermined)."""
+    if result.correlation is None:
+        return None
+    names, matrix = result.correlation
+    return {"names": names,
+            "matrix": [[None if not np.isfinite(v) else round(float(v), 6) for v in row]
+                       for row in np.asarray(matrix)]}
+
+
 def report_dict(result: FitResult, held_out: tuple[Measurements, np.ndarray] | None = None
                 ) -> dict:
     """The content of ``fit.json``."""
@@ -41,7 +57,8 @@ def report_dict(result: FitResult, held_out: tuple[Measurements, np.ndarray] | N
         "data": d.source,
         "data_comments": d.comments,
         "parameters": result.parameters,
-        "uncertainties": result.uncertainties,
+        "uncertainties": {k: (v if np.isfinite(v) else None)
+                          for k, v in result.uncertainties.items()},
         "free": result.free,
         "parameters_by_wavelength": {f"{k:g}": v for k, v in
                                      result.parameters_by_wavelength.items()},
@@ -56,8 +73,19 @@ def report_dict(result: FitResult, held_out: tuple[Measurements, np.ndarray] | N
         "per_wavelength": [{"wavelength": float(w), **statistics(result.model_brf, d,
                                                                  d.wavelength == w)}
                            for w in d.wavelengths()],
+        "chi2_per_point": result.chi2_per_point,
+        "geometry": _geometry_summary(d),
+        "optics": result.optics,
+        "warnings": result.warnings,
+        "correlation": _correlation(result),
+        "radius_branches": result.radius_branches,
         "optimizer": {"evaluations": result.evaluations, "seconds": result.seconds,
-                      "starts": [{"loss": l_, "evaluations": e} for l_, e in result.starts]},
+                      "starts": len(result.starts),
+                      "agreeing_starts": result.agreeing,
+                      "agreement": "final loss within 1 % of the best",
+                      "trusted": result.agreeing >= 2,
+                      "start_losses": sorted(result.starts),
+                      "stages": result.stages},
         "residuals": [
             {"theta_i": float(d.theta_i[i]), "theta_o": float(d.theta_o[i]),
              "phi": float(d.phi[i]), "wavelength": float(d.wavelength[i]),

@@ -54,15 +54,17 @@ def read_image(path: str | Path, encoding: str = "auto") -> np.ndarray:
     elif suffix in (".png", ".jpg", ".jpeg"):
         import mitsuba as mi
 
-        if mi.variant() is None:
-            mi.set_variant("scalar_rgb")
-        bmp = mi.Bitmap(str(path))
-        scale = {mi.Struct.Type.UInt8: 255.0, mi.Struct.Type.UInt16: 65535.0}.get(
-            bmp.component_format())
-        if scale is None:
-            raise ValueError(f"image {path}: component format {bmp.component_format()} is "
-                             "not 8 or 16 bit")
-        arr = np.array(bmp, dtype=np.float64) / scale
+        from .variants import use_variant
+
+        # mi.Bitmap needs a variant, any will do: the caller's, else scalar_rgb
+        with use_variant(mi.variant() or "scalar_rgb"):
+            bmp = mi.Bitmap(str(path))
+            scale = {mi.Struct.Type.UInt8: 255.0, mi.Struct.Type.UInt16: 65535.0}.get(
+                bmp.component_format())
+            if scale is None:
+                raise ValueError(f"image {path}: component format {bmp.component_format()} "
+                                 "is not 8 or 16 bit")
+            arr = np.array(bmp, dtype=np.float64) / scale
         if arr.ndim == 2:
             arr = arr[..., None]
         if arr.shape[2] in (1, 2):  # grey (+ alpha)
@@ -296,7 +298,7 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
 
 def write_report(out_dir: str | Path, stats: Comparison, render: np.ndarray,
                  photo: np.ndarray, de: np.ndarray) -> Path:
-    """``comparison.json``, ``delta_e.png`` (the map) and ``side_by_side.png`` (render,
+    """``photo_comparison.json``, ``delta_e.png`` (the map) and ``side_by_side.png`` (render,
     aligned photo, map) into ``out_dir``; returns the JSON path."""
     import matplotlib
 
@@ -305,7 +307,7 @@ def write_report(out_dir: str | Path, stats: Comparison, render: np.ndarray,
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / "comparison.json"
+    path = out / "photo_comparison.json"
     path.write_text(json.dumps(asdict(stats), indent=1))
     show = lambda x: np.clip(colour.cctf_encoding(np.clip(x / stats.white, 0, 1),  # noqa: E731
                                                   function="sRGB"), 0, 1)

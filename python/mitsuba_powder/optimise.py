@@ -1,0 +1,331 @@
+"""Bounded non-linear least squares from many starts: the optimiser of every fit in the package.
+
+A problem is a vector of residuals ``r(y)`` (float64) of ``p`` variables ``y`` inside a box
+``[lower, upper]``, evaluated for a *batch* of ``B`` points at once (the powder model evaluates
+all of them in one Dr.Jit launch). The strategy:
+
+1. **Space-filling starts**: a scrambled Sobol design over the box (:func:`sobol_starts`); the
+   caller may replace columns (e.g. a log grid over a radius so that every Mie branch is tried).
+2. **Batched Levenberg-Marquardt** (:func:`batch_levenberg_marquardt`): every start takes damped
+   Gauss-Newton steps at the same time, ``(J^T J + lambda diag(J^T J)) dy = -J^T r`` with the
+   Jacobian of the problem, projected onto the box; a step is kept where it lowers the cost.
+   Variables can be held at their start value (a profile).
+3. **Polish** (:func:`polish`): the best few *distinct* end points are refined with
+   ``scipy.optimize.least_squares`` (trust-region reflective, bounds, the problem's Jacobian).
+4. **Agreement**: how many starts end within 1 % of the best cost. A fit with fewer than two is
+   not trusted to be the global optimum (:attr:`MultistartResult.agreeing`).
+
+Variables are in the optimiser's space ``y``: :class:`ParamSpec` maps a bounded parameter to
+``y = log10(x)`` (positive scale parameters) or ``y = x``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+#: Relative cost difference under which two starts "reach the same loss"
+AGREEMENT = 0.01
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Bounds (in the parameter's own unit), search scale and default start of a parameter."""
+
+    lower: float
+    upper: float
+    log: bool
+    start: float
+
+    def to_y(self, x: float | np.ndarray) -> float | np.ndarray:
+        """Parameter value -> optimiser variable (log10 for log-scaled parameters)."""
+        return np.log10(x) if self.log else x
+
+    def to_x(self, y: float | np.ndarray) -> float | np.ndarray:
+        """Optimiser variable -> parameter value."""
+        return 10.0**y if self.log else y
+
+    def dx_dy(self, x: float | np.ndarray) -> float | np.ndarray:
+        """Derivative of the parameter with respect to its optimiser variable."""
+        return x * math.log(10.0) if self.log else np.ones_like(x)
+
+
+class BatchProblem(Protocol):
+    """What the optimiser needs of a least-squares problem."""
+
+    lower: np.ndarray  #: (p,) lower bounds of y
+    upper: np.ndarray  #: (p,) upper bounds of y
+
+    def residuals(self, y: np.ndarray) -> np.ndarray:
+        """(B, p) points -> (B, N) residuals (float64)."""
+
+    def jacobian(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, p) points -> residuals (B, N) and their Jacobian (B, N, p) with respect to y."""
+
+
+def sobol_starts(lower: np.ndarray, upper: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """``count`` scrambled-Sobol points of the box, (count, p)."""
+    from scipy.stats import qmc
+
+    if count < 1:
+        raise ValueError(f"starts = {count} is out of range; valid range is [1, inf)")
+    sampler = qmc.Sobol(d=len(lower), scramble=True, seed=seed)
+    m = max(0, math.ceil(math.log2(count)))
+    u = sampler.random_base2(m)[:count]
+    return lower + u * (upper - lower)
+
+
+def finite_difference_jacobian(residuals: Callable[[np.ndarray], np.ndarray],
+                               lower: np.ndarray, upper: np.ndarray
+                               ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """A batched Jacobian by central differences (for float64 NumPy models), steps kept inside
+    the box."""
+
+    def jacobian(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r0 = residuals(y)
+        jac = np.empty(r0.shape + (y.shape[1],))
+        for j in range(y.shape[1]):
+            h = 1e-6 * np.maximum(1.0, np.abs(y[:, j]))
+            yp, ym = y.copy(), y.copy()
+            yp[:, j] = np.minimum(y[:, j] + h, upper[j])
+            ym[:, j] = np.maximum(y[:, j] - h, lower[j])
+            step = (yp[:, j] - ym[:, j])[:, None]
+            jac[:, :, j] = (residuals(yp) - residuals(ym)) / np.where(step > 0, step, 1.0)
+        return r0, jac
+
+    return jacobian
+
+
+@dataclass
+class LMState:
+    """End of a batched Levenberg-Marquardt run."""
+
+    y: np.ndarray        #: (B, p) end points
+    cost: np.ndarray     #: (B,) sums of squared residuals
+    iterations: int
+    evaluations: int     #: batch evaluations (one per residual or Jacobian call)
+
+
+def _solve_damped(jac: np.ndarray, res: np.ndarray, damping: np.ndarray,
+                  free: np.ndarray) -> np.ndarray:
+    """Levenberg-Marquardt steps of every start (held variables get 0)."""
+    jf = jac[:, :, free]
+    a = np.einsum("bni,bnj->bij", jf, jf)
+    g = np.einsum("bni,bn->bi", jf, res)
+    diag = np.maximum(np.einsum("bii->bi", a), 1e-30)
+    a_damped = a + (damping[:, None] * diag)[:, :, None] * np.eye(jf.shape[2])[None]
+    a_damped += 1e-12 * np.max(diag, axis=1)[:, None, None] * np.eye(jf.shape[2])[None]
+    step = np.zeros((jac.shape[0], jac.shape[2]))
+    try:
+        step[:, free] = -np.linalg.solve(a_damped, g[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        step[:, free] = -np.einsum("bij,bj->bi", np.linalg.pinv(a_damped), g)
+    return step
+
+
+def _padded(fn: Callable, y: np.ndarray):
+    """Call a batched function on the rows ``y``, padded (by repeating the last row) to a power
+    of two, so that a shrinking set of active starts reuses a few batch sizes."""
+    k = len(y)
+    size = 1 << max(0, (k - 1).bit_length())
+    out = fn(np.concatenate([y, np.repeat(y[-1:], size - k, axis=0)]) if size > k else y)
+    return tuple(o[:k] for o in out) if isinstance(out, tuple) else out[:k]
+
+
+def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterations: int = 60,
+                              hold: np.ndarray | None = None, ftol: float = 1e-7,
+                              hopeless: float = 10.0, patience: int = 10) -> LMState:
+    """Damped Gauss-Newton from every row of ``y0`` at once.
+
+    Each iteration evaluates the trial points of the active starts in one batch and the
+    Jacobian only where a step was kept. A start stops when a kept step lowers its cost by less
+    than ``ftol`` (relative), when its damping explodes (no descent left inside the box), or,
+    after ``patience`` iterations, when its cost exceeds ``hopeless`` times the best (another
+    basin; the polish only takes the best ones).
+
+    Args:
+        problem: the batched least-squares problem.
+        y0: (B, p) starts inside the box.
+        max_iterations: iterations at most.
+        hold: (p,) booleans, variables kept at their start value.
+    """
+    y = np.clip(np.array(y0, dtype=np.float64), problem.lower, problem.upper)
+    free = np.ones(y.shape[1], dtype=bool) if hold is None else ~np.asarray(hold, dtype=bool)
+    damping = np.full(len(y), 1e-3)
+    active = np.ones(len(y), dtype=bool)
+    res, jac = _padded(problem.jacobian, y)
+    cost = np.sum(res**2, axis=1)
+    evaluations, iterations = 1, 0
+    if not free.any():
+        return LMState(y, cost, 0, evaluations)
+    for iterations in range(1, max_iterations + 1):  # noqa: B007
+        act = np.nonzero(active)[0]
+        step = _solve_damped(jac[act], res[act], damping[act], free)
+        trial = np.clip(y[act] + step, problem.lower, problem.upper)
+        trial_cost = np.sum(_padded(problem.residuals, trial) ** 2, axis=1)
+        evaluations += 1
+        better = np.isfinite(trial_cost) & (trial_cost < cost[act])
+        gain = np.where(better, (cost[act] - trial_cost) / np.maximum(cost[act], 1e-300), 0.0)
+        damping[act] = np.where(better, np.maximum(damping[act] / 3.0, 1e-9),
+                                damping[act] * 4.0)
+        kept = act[better]
+        if len(kept):
+            y[kept] = trial[better]
+            r_new, j_new = _padded(problem.jacobian, y[kept])
+            evaluations += 1
+            res[kept], jac[kept] = r_new, j_new
+            cost[kept] = np.sum(r_new**2, axis=1)
+        done = np.zeros(len(y), dtype=bool)
+        done[act] = (better & (gain < ftol)) | (damping[act] > 1e7)
+        if iterations >= patience:
+            done |= cost > hopeless * np.min(cost)
+        active &= ~done
+        if not active.any():
+            break
+    return LMState(y, cost, iterations, evaluations)
+
+
+@dataclass
+class PolishResult:
+    y: np.ndarray
+    cost: float
+    evaluations: int
+
+
+def polish(problem: BatchProblem, y0: np.ndarray, max_evaluations: int = 200,
+           hold: np.ndarray | None = None) -> PolishResult:
+    """Refine one point with ``scipy.optimize.least_squares`` (method ``trf``, bounds, the
+    problem's Jacobian); ``hold`` variables stay at ``y0``."""
+    from scipy.optimize import least_squares
+
+    y0 = np.clip(np.asarray(y0, dtype=np.float64), problem.lower, problem.upper)
+    free = np.ones(len(y0), dtype=bool) if hold is None else ~np.asarray(hold, dtype=bool)
+    cache: dict = {}
+    count = [0]
+
+    def full(z: np.ndarray) -> np.ndarray:
+        y = y0.copy()
+        y[free] = z
+        return y
+
+    def evaluate(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = z.tobytes()
+        if cache.get("key") != key:
+            r, j = problem.jacobian(full(z)[None])
+            count[0] += 1
+            cache.update(key=key, r=r[0], j=j[0][:, free])
+        return cache["r"], cache["j"]
+
+    lo, hi = problem.lower[free], problem.upper[free]
+    # least_squares wants a strictly interior start
+    span = hi - lo
+    z0 = np.clip(y0[free], lo + 1e-10 * span, hi - 1e-10 * span)
+    best = {"cost": math.inf, "z": z0}
+
+    def fun(z):
+        r = evaluate(z)[0]
+        c = float(np.dot(r, r))
+        if c < best["cost"]:
+            best.update(cost=c, z=z.copy())
+        return r
+
+    solution = least_squares(fun, z0, jac=lambda z: evaluate(z)[1], bounds=(lo, hi),
+                             method="trf", x_scale="jac", ftol=1e-9, xtol=1e-9, gtol=1e-9,
+                             max_nfev=max_evaluations)
+    z = solution.x if 2.0 * solution.cost <= best["cost"] else best["z"]
+    r = evaluate(z)[0]
+    return PolishResult(full(z), float(np.dot(r, r)), count[0])
+
+
+@dataclass
+class MultistartResult:
+    """Outcome of :func:`multistart`.
+
+    Attributes:
+        y: best point. cost: its sum of squares.
+        start_costs: (B,) final cost of every start (polished ones after polishing).
+        polished: indices of the polished starts.
+        agreeing: starts whose final cost is within :data:`AGREEMENT` of the best.
+        evaluations: batch evaluations of the global phase + single-point evaluations of the
+            polish.
+        seconds: wall-clock time.
+    """
+
+    y: np.ndarray
+    cost: float
+    start_costs: np.ndarray
+    polished: list[int]
+    agreeing: int
+    evaluations: int
+    seconds: float
+    stages: list[str] = field(default_factory=list)
+
+
+def distinct_best(y: np.ndarray, cost: np.ndarray, count: int, span: np.ndarray,
+                  min_distance: float = 0.02) -> list[int]:
+    """Indices of up to ``count`` lowest-cost points that are at least ``min_distance`` apart
+    (max norm, relative to the box ``span``)."""
+    chosen: list[int] = []
+    for i in np.argsort(cost):
+        if not np.isfinite(cost[i]):
+            continue
+        if all(np.max(np.abs(y[i] - y[j]) / span) > min_distance for j in chosen):
+            chosen.append(int(i))
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+def multistart(problem: BatchProblem, starts: np.ndarray, polish_count: int = 4,
+               hold_global: np.ndarray | None = None, max_iterations: int = 60,
+               max_polish_evaluations: int = 200, refine_count: int = 16,
+               progress: Callable[[str], None] | None = None,
+               before_free: Callable[[], None] | None = None) -> MultistartResult:
+    """Batched Levenberg-Marquardt from every start; with ``hold_global`` variables held in this
+    first phase (e.g. a radius on a grid), the best ``refine_count`` distinct end points take a
+    second batched phase with every variable free (``before_free`` is called first); then the
+    best ``polish_count`` distinct end points are polished."""
+    t0 = time.perf_counter()
+    lm = batch_levenberg_marquardt(problem, starts, max_iterations, hold_global)
+    held = hold_global is not None and bool(np.any(hold_global))
+    stages = [f"global: {len(starts)} starts, batched Levenberg-Marquardt"
+              f"{' (profile variables held)' if held else ''}, {lm.iterations} iterations "
+              f"({lm.evaluations} batch evaluations), best cost {np.min(lm.cost):.6g}"]
+    if progress:
+        progress(stages[-1])
+    span = np.maximum(problem.upper - problem.lower, 1e-30)
+    costs, ends = lm.cost.copy(), lm.y.copy()
+    evaluations = lm.evaluations
+    if before_free is not None:
+        before_free()
+    if held:
+        refine = distinct_best(ends, costs, refine_count, span)
+        second = batch_levenberg_marquardt(problem, ends[refine], max_iterations)
+        costs[refine], ends[refine] = second.cost, second.y
+        evaluations += second.evaluations
+        stages.append(f"global, every variable free: the best {len(refine)} end points, "
+                      f"{second.iterations} iterations ({second.evaluations} batch "
+                      f"evaluations), best cost {np.min(second.cost):.6g}")
+        if progress:
+            progress(stages[-1])
+    # end points in far worse basins (ten times the best cost) are not worth polishing
+    chosen = [i for i in distinct_best(ends, costs, polish_count, span)
+              if costs[i] <= 10.0 * np.min(costs)]
+    for i in chosen:
+        result = polish(problem, ends[i], max_polish_evaluations)
+        evaluations += result.evaluations
+        stages.append(f"polish of start {i}: cost {costs[i]:.6g} -> {result.cost:.6g} "
+                      f"({result.evaluations} evaluations)")
+        if result.cost <= costs[i]:
+            costs[i], ends[i] = result.cost, result.y
+        if progress:
+            progress(stages[-1])
+    best = int(np.argmin(costs))
+    agreeing = int(np.sum(costs <= costs[best] * (1.0 + AGREEMENT) + 1e-300))
+    return MultistartResult(ends[best], float(costs[best]), costs, chosen, agreeing,
+                            evaluations, time.perf_counter() - t0, stages)
