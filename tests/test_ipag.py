@@ -76,6 +76,16 @@ def only_line_ending(path: Path, newline: str) -> None:
 # ------------------------------------------------------------------ round trip
 
 
+def assert_load_error(path: Path, fragments: list[str]) -> None:
+    """Loading ``path`` fails with a message naming it and holding every fragment."""
+    with pytest.raises(MeasurementError) as info:
+        load_measurements(path)
+    msg = str(info.value)
+    assert str(path) in msg, msg
+    for fragment in fragments:
+        assert fragment in msg, msg
+
+
 @pytest.mark.parametrize("newline", NEWLINES)
 def test_round_trip_every_layout(simulated, tmp_path, newline):
     nl = NEWLINES[newline]
@@ -343,13 +353,7 @@ def test_errors_zero_or_missing(tmp_path):
       "convention='signed'"]),
 ])
 def test_malformed_multi_files(tmp_path, kwargs, fragments):
-    path = write(tmp_path, multi_text(**kwargs))
-    with pytest.raises(MeasurementError) as info:
-        load_measurements(path)
-    msg = str(info.value)
-    assert str(path) in msg, msg
-    for fragment in fragments:
-        assert fragment in msg, msg
+    assert_load_error(write(tmp_path, multi_text(**kwargs)), fragments)
 
 
 def test_malformed_angle_rows(tmp_path):
@@ -447,12 +451,7 @@ def test_malformed_single_files(tmp_path, files, fragments):
     folder.mkdir()
     for name, rows in files.items():
         single(folder, name, rows=rows)
-    with pytest.raises(MeasurementError) as info:
-        load_measurements(folder)
-    msg = str(info.value)
-    assert str(folder) in msg, msg
-    for fragment in fragments:
-        assert fragment in msg, msg
+    assert_load_error(folder, fragments)
 
 
 def test_count_line_with_azimuths_is_undecidable(tmp_path):

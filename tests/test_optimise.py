@@ -1,0 +1,139 @@
+"""The shared optimiser (mitsuba_powder.optimise) on problems with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mitsuba_powder.optimise import (
+    ParamSpec,
+    batch_levenberg_marquardt,
+    distinct_best,
+    finite_difference_jacobian,
+    multistart,
+    polish,
+    sobol_starts,
+)
+
+
+class TwoExponentials:
+    """r(y) = a1 exp(-k1 t) + a2 exp(-k2 t) - data: a classic multi-minimum fit (the two terms
+    can swap, and a one-term fit is a local minimum), y = (a1, log10 k1, a2, log10 k2)."""
+
+    def __init__(self, truth=(1.0, 0.0, 0.5, 1.0), noise=0.0):
+        self.t = np.linspace(0.0, 4.0, 60)
+        self.data = self.model(np.array([truth]))[0]
+        self.data += noise * np.random.default_rng(1).normal(size=self.t.size)
+        self.lower = np.array([0.0, -2.0, 0.0, -2.0])
+        self.upper = np.array([2.0, 2.0, 2.0, 2.0])
+        self.calls = 0
+
+    def model(self, y):
+        a1, k1, a2, k2 = (y[:, j:j + 1] for j in range(4))
+        return a1 * np.exp(-(10.0**k1) * self.t) + a2 * np.exp(-(10.0**k2) * self.t)
+
+    def residuals(self, y):
+        self.calls += 1
+        return self.model(np.atleast_2d(y)) - self.data
+
+    def jacobian(self, y):
+        y = np.atleast_2d(y)
+        a1, k1, a2, k2 = (y[:, j:j + 1] for j in range(4))
+        e1, e2 = np.exp(-(10.0**k1) * self.t), np.exp(-(10.0**k2) * self.t)
+        ln = np.log(10.0)
+        jac = np.stack([e1, -a1 * self.t * e1 * 10.0**k1 * ln, e2,
+                        -a2 * self.t * e2 * 10.0**k2 * ln], axis=2)
+        return self.residuals(y), jac
+
+
+def test_param_spec_transforms():
+    spec = ParamSpec(1e-3, 1e3, True, 1.0)
+    assert spec.to_y(100.0) == pytest.approx(2.0)
+    assert spec.to_x(spec.to_y(0.37)) == pytest.approx(0.37)
+    h = 1e-6
+    assert spec.dx_dy(5.0) == pytest.approx((spec.to_x(spec.to_y(5.0) + h) - 5.0) / h, rel=1e-5)
+    lin = ParamSpec(-1.0, 1.0, False, 0.0)
+    assert lin.to_y(0.3) == 0.3 and lin.dx_dy(0.3) == 1.0
+
+
+def test_sobol_starts_fill_the_box():
+    lower, upper = np.array([0.0, -3.0]), np.array([1.0, 3.0])
+    y = sobol_starts(lower, upper, 64, seed=0)
+    assert y.shape == (64, 2)
+    assert np.all(y >= lower) and np.all(y <= upper)
+    # space filling: every quarter of each axis holds a quarter of the points
+    for j in range(2):
+        counts = np.histogram(y[:, j], bins=4, range=(lower[j], upper[j]))[0]
+        assert np.all(counts == 16)
+    assert not np.allclose(y, sobol_starts(lower, upper, 64, seed=1))
+    with pytest.raises(ValueError, match="starts = 0 is out of range"):
+        sobol_starts(lower, upper, 0, seed=0)
+
+
+def test_batched_levenberg_marquardt_reaches_the_minimum_from_many_starts():
+    problem = TwoExponentials()
+    starts = sobol_starts(problem.lower, problem.upper, 32, seed=3)
+    state = batch_levenberg_marquardt(problem, starts, max_iterations=200)
+    assert state.y.shape == starts.shape
+    best = int(np.argmin(state.cost))
+    assert state.cost[best] < 1e-12
+    # the two terms may swap: compare the sorted (amplitude, rate) pairs
+    pairs = sorted([(state.y[best, 0], state.y[best, 1]), (state.y[best, 2], state.y[best, 3])],
+                   key=lambda p: p[1])
+    np.testing.assert_allclose(pairs, [(1.0, 0.0), (0.5, 1.0)], atol=1e-5)
+    # every start ends no worse than it began and inside the box
+    begin = np.sum(problem.residuals(starts) ** 2, axis=1)
+    assert np.all(state.cost <= begin + 1e-15)
+    assert np.all(state.y >= problem.lower) and np.all(state.y <= problem.upper)
+
+
+def test_held_variables_stay_at_their_start():
+    problem = TwoExponentials()
+    starts = sobol_starts(problem.lower, problem.upper, 8, seed=0)
+    hold = np.array([False, True, False, True])
+    state = batch_levenberg_marquardt(problem, starts, hold=hold)
+    np.testing.assert_array_equal(state.y[:, hold], starts[:, hold])
+    # the free amplitudes are the linear least-squares solution for the held rates
+    for b in range(len(starts)):
+        k1, k2 = starts[b, 1], starts[b, 3]
+        basis = np.stack([np.exp(-(10.0**k1) * problem.t), np.exp(-(10.0**k2) * problem.t)],
+                         axis=1)
+        amps = np.linalg.lstsq(basis, problem.data, rcond=None)[0]
+        if np.all((amps >= 0) & (amps <= 2)):
+            np.testing.assert_allclose(state.y[b, [0, 2]], amps, atol=1e-4)
+
+
+def test_polish_respects_bounds_and_held_variables():
+    problem = TwoExponentials(truth=(1.0, 0.0, 1.8, 1.0))
+    problem.upper = np.array([2.0, 2.0, 1.5, 2.0])  # the true a2 = 1.8 lies outside
+    result = polish(problem, np.array([0.5, 0.2, 0.5, 0.8]))
+    assert result.y[2] == pytest.approx(1.5)  # at its bound
+    held = polish(problem, np.array([0.5, 0.2, 0.5, 0.8]),
+                  hold=np.array([False, True, False, False]))
+    assert held.y[1] == 0.2 and held.cost >= result.cost - 1e-12
+
+
+def test_multistart_counts_agreeing_starts_and_finds_the_global_minimum():
+    problem = TwoExponentials(noise=0.002)
+    result = multistart(problem, sobol_starts(problem.lower, problem.upper, 32, seed=2),
+                        polish_count=3)
+    assert result.agreeing >= 2
+    assert len(result.start_costs) == 32 and result.cost == pytest.approx(
+        np.min(result.start_costs))
+    assert np.sum(result.start_costs <= result.cost * 1.01) == result.agreeing
+    # a single start from the one-term valley (a2 = 0) stays there: one agreeing start
+    lone = multistart(problem, np.array([[1.2, 0.05, 0.0, -2.0]]), polish_count=1)
+    assert lone.agreeing == 1
+
+
+def test_finite_difference_jacobian_matches_the_analytic_one():
+    problem = TwoExponentials()
+    fd = finite_difference_jacobian(problem.residuals, problem.lower, problem.upper)
+    y = np.array([[0.7, 0.1, 0.4, 0.9], [1.5, -0.5, 0.2, 1.2]])
+    np.testing.assert_allclose(fd(y)[1], problem.jacobian(y)[1], rtol=1e-5, atol=1e-8)
+
+
+def test_distinct_best_skips_near_duplicates():
+    y = np.array([[0.0, 0.0], [0.001, 0.0], [0.5, 0.5], [1.0, 1.0]])
+    cost = np.array([1.0, 0.9, 2.0, np.nan])
+    assert distinct_best(y, cost, 3, np.array([1.0, 1.0])) == [1, 2]
