@@ -139,7 +139,7 @@ def _padded(fn: Callable, y: np.ndarray):
 
 def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterations: int = 60,
                               hold: np.ndarray | None = None, ftol: float = 1e-7,
-                              hopeless: float = 10.0, patience: int = 10) -> LMState:
+                              hopeless: float = 100.0, patience: int = 15) -> LMState:
     """Damped Gauss-Newton from every row of ``y0`` at once.
 
     Each iteration evaluates the trial points of the active starts in one batch and the
@@ -305,6 +305,10 @@ def multistart(problem: BatchProblem, starts: np.ndarray, polish_count: int = 4,
         before_free()
     if held:
         refine = distinct_best(ends, costs, refine_count, span)
+        # starts that ended at the same held point as a chosen one follow it (so that starts
+        # sharing a basin can agree), each from its own end point
+        near = np.max(np.abs(ends[:, None, :] - ends[None, refine, :]) / span, axis=2)
+        refine = sorted(set(refine) | set(np.nonzero(np.min(near, axis=1) <= 0.02)[0].tolist()))
         second = batch_levenberg_marquardt(problem, ends[refine], max_iterations)
         costs[refine], ends[refine] = second.cost, second.y
         evaluations += second.evaluations
