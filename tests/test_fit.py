@@ -447,6 +447,10 @@ def test_fit_rejects_bad_parameter_names():
         fit(data, free=["radius2"])
     with pytest.raises(ValueError, match="albedo and \\['radius'\\] cannot be used together"):
         fit(data, free=["albedo"], fixed={"radius": 0.05})
+    with pytest.raises(ValueError, match="sigma has no effect with specular = 'harvey_shack'"):
+        fit(data, free=["sigma"])
+    with pytest.raises(ValueError, match="correlation_length has no effect"):
+        fit(data, free=["correlation_length"], fixed={"specular": "gaussian"})
     with pytest.raises(ValueError, match="polish = 0 is out of range"):
         fit(data, free=["g"], polish=0)
     with pytest.raises(ValueError, match="eta = 'x'"):

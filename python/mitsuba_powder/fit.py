@@ -174,6 +174,12 @@ def _check_free(free: list[str], fixed: dict) -> None:
             ("radius2" in free or "radius2" in fixed) and
             ("fraction2" in free or "fraction2" in fixed)):
         raise ValueError("a second population needs radius2 and fraction2 (free or fixed)")
+    specular = fixed.get("specular", "harvey_shack")
+    unused = {"harvey_shack": "sigma", "gaussian": "correlation_length"}.get(specular)
+    if unused in free:
+        raise ValueError(f"{unused} has no effect with specular = {specular!r}: fit "
+                         f"{'correlation_length' if unused == 'sigma' else 'sigma'} instead, or "
+                         f"set specular={'gaussian' if unused == 'sigma' else 'harvey_shack'}")
     grains = [n for n in GRAIN_VARIABLES if n in free or n in fixed]
     if ("albedo" in free or "albedo" in fixed) and grains:
         raise ValueError(f"albedo and {grains} cannot be used together: a given albedo "
