@@ -532,3 +532,21 @@ def test_conventions_figure_script(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "ipag_conventions.png").stat().st_size > 20000
+
+
+def test_compare_models_and_render_gonio_read_ipag_files(tmp_path):
+    """The other commands that take measurement files accept an IPAG file too."""
+    params = tmp_path / "p.json"
+    params.write_text('{"radius": 0.05, "amplitude_surface": 2e-4}')
+    geo = tmp_path / "S_geo.txt"
+    assert main(["simulate", "--params", str(params), "--protocol", "backscatter",
+                 "--noise", "0.01", "--format", "ipag", "--out", str(geo)]) == 0
+    assert main(["compare-models", str(geo), "--set", "radius=0.05", "--starts", "4",
+                 "--out", str(tmp_path / "cmp")]) == 0
+    rows = json.loads((tmp_path / "cmp" / "model_comparison.json").read_text())
+    assert {r["model"] for r in rows} >= {"powder", "lambertian"}
+    assert all(r["n"] == 33 for r in rows)
+    assert main(["render-gonio", "--data", str(geo), "--params", str(params), "--spp", "4",
+                 "--resolution", "2", "--variant", "llvm_ad_mono",
+                 "--out", str(tmp_path / "gonio")]) == 0
+    assert any((tmp_path / "gonio").iterdir())
