@@ -331,6 +331,36 @@ def test_ptfe_fit_reaches_the_reference_fits_best_loss(wavelength, seeds):
     assert max(losses) <= 1.01 * min(losses)
 
 
+def test_regime_bounds_the_extinction_to_the_narrow_cone():
+    """--regime ebs (default) keeps kappa/k0 <= 0.25 at every fitted wavelength and says when
+    the optimum sits on that bound; --regime free lifts it."""
+    truth = {**TRUTH, "radius": 0.05, "extinction": 5.0}  # kappa/k0 = 0.56 at 700 nm
+    data = simulate(truth, "shadows,backscatter", noise=0.01, seed=3)
+    limit = 0.25 * 2 * np.pi / 0.7
+    ebs = fit(data, starts=16)
+    assert ebs.regime["name"] == "ebs"
+    assert ebs.regime["extinction_limit"] == pytest.approx(limit)
+    assert ebs.parameters["extinction"] == pytest.approx(limit, rel=1e-3)
+    assert any("bound of the EBS regime" in w for w in ebs.warnings)
+    assert ebs.chi2_per_point > 1.5  # the data want a broader cone
+    free = fit(data, starts=16, regime="free")
+    assert free.regime["name"] == "free" and free.regime["extinction_limit"] is None
+    assert not any("EBS regime" in w for w in free.warnings)
+    assert free.chi2_per_point < 1.2
+    assert_recovered(free, truth, ["extinction", "amplitude_volume", "g"])
+    assert free.regime["kappa_over_k0"]["700"] == pytest.approx(
+        free.parameters["extinction"] * 0.7 / (2 * np.pi))
+    # inside the regime both give the same optimum
+    inside = simulate({**TRUTH, "radius": 0.05}, "shadows,backscatter", noise=0.01, seed=3)
+    a, b = fit(inside, starts=16), fit(inside, starts=16, regime="free")
+    assert a.loss == pytest.approx(b.loss, rel=1e-6)
+    with pytest.raises(ValueError, match="regime = 'loose' is not valid"):
+        fit(inside, regime="loose")
+    # a fixed extinction outside the regime is reported
+    fixed = fit(inside, free=["g"], fixed={"extinction": 5.0}, starts=2)
+    assert any("outside the EBS regime" in w for w in fixed.warnings)
+
+
 # ----------------------------------------------------------------- the fit's model
 
 
@@ -525,11 +555,11 @@ def test_cli_simulate_fit_report_and_prediction(tmp_path, capsys):
                  "--set", "radius=0.05", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "held-out" in printed and "starts reached the best loss" in printed
-    assert "chi2/N" in printed and "material hematite" in printed
+    assert "chi2/N" in printed and "material hematite" in printed and "regime ebs" in printed
     report = json.loads((out / "fit.json").read_text())
     for key in ("parameters", "uncertainties", "residuals", "rmse_brf", "chi2_per_point",
                 "relative_rmse_percent", "per_incidence", "optimizer", "prediction",
-                "warnings", "correlation", "geometry", "optics"):
+                "warnings", "correlation", "geometry", "optics", "regime"):
         assert key in report, key
     assert report["optimizer"]["agreeing_starts"] >= 2 and report["optimizer"]["trusted"]
     assert report["geometry"]["rows"] == report["n_measurements"]

@@ -137,7 +137,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     print(f"fitting {len(data)} measurements at {data.wavelengths().tolist()} nm; "
           f"free: {', '.join(free)}; fixed: {fixed or 'plugin defaults'}")
     result = fit(data, free, fixed, starts=args.starts, polish=args.polish, seed=args.seed,
-                 progress=print)
+                 progress=print, regime=args.regime)
     held = None
     if held_out is not None and len(held_out):
         held = (held_out, predict(result, held_out))
@@ -152,6 +152,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
           f"{result.evaluations} evaluations in {result.seconds:.1f} s")
     if result.chi2_per_point is not None:
         print(f"chi2/N = {result.chi2_per_point:.4g} (the data's sigma)")
+    ratios = result.regime["kappa_over_k0"].values()
+    print(f"regime {result.regime['name']}: kappa/k0 {min(ratios):.3g}-{max(ratios):.3g}"
+          + (f" (bound 0.25: extinction <= {result.regime['extinction_limit']:.4g} /um)"
+             if result.regime["name"] == "ebs" else " (not bounded)"))
     print(f"{result.agreeing} of {len(result.starts)} starts reached the best loss (within 1 %)")
     for b in result.radius_branches:
         print(f"  radius {b['radius']:.5g} um (albedo within 1-sigma for "
@@ -364,6 +368,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "log grid of radii)")
     p.add_argument("--polish", type=int, default=4,
                    help="distinct end points of the global phase polished (scipy)")
+    p.add_argument("--regime", choices=("ebs", "free"), default="ebs",
+                   help="ebs: bound the extinction so that kappa/k0 <= 0.25 at every fitted "
+                        "wavelength (the narrow-cone regime of the theory); free: lift it")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="fit_out", help="output folder (fit.json, figures)")
     _add_data_options(p)

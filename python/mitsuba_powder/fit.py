@@ -81,6 +81,13 @@ DEFAULT_FREE = ["amplitude_volume", "g", "extinction", "radius", "amplitude_surf
 DEFAULT_FREE_ONE_WAVELENGTH = ["amplitude_volume", "g", "extinction", "albedo",
                                "amplitude_surface", "correlation_length"]
 
+#: Enhanced back-scattering theory holds while the cone is narrow: ``--regime ebs`` bounds
+#: the extinction so that kappa / k0 stays at most this at every fitted wavelength
+EBS_KAPPA_OVER_K0 = 0.25
+
+#: Regimes of :func:`fit`
+REGIMES = ("ebs", "free")
+
 #: A parameter this close to a bound (fraction of its search range) is "at the bound"
 AT_BOUND = 1e-3
 
@@ -127,6 +134,8 @@ class FitResult:
             1-sigma (:func:`radius_branches`).
         optics: the grain material, ``eta``/``k`` or ``tau_o`` in use, and tau_o per wavelength.
         stages: a line per stage of the optimisation.
+        regime: the regime (``ebs`` or ``free``), the extinction limit it set, and kappa / k0
+            at each wavelength with the fitted extinction.
     """
 
     parameters: dict
@@ -146,6 +155,7 @@ class FitResult:
     radius_branches: list[dict] = field(default_factory=list)
     optics: dict = field(default_factory=dict)
     stages: list[str] = field(default_factory=list)
+    regime: dict = field(default_factory=dict)
 
     def residuals(self) -> np.ndarray:
         return self.model_brf - self.data.brf
@@ -201,11 +211,16 @@ class Problem:
     Variables: one per free property; ``albedo`` once per wavelength when several are fitted.
     """
 
-    def __init__(self, data: Measurements, free: list[str], fixed: dict):
+    def __init__(self, data: Measurements, free: list[str], fixed: dict,
+                 regime: str = "ebs"):
         _check_free(free, fixed)
+        if regime not in REGIMES:
+            raise ValueError(f"regime = {regime!r} is not valid; valid values are "
+                             f"{', '.join(REGIMES)}")
         self.data = data
         self.free = list(free)
         self.fixed = dict(fixed)
+        self.regime = regime
         self.wavelengths = data.wavelengths()
         self.row_wavelength = np.searchsorted(self.wavelengths, data.wavelength)
         self.names: list[tuple[str, float | None]] = []
@@ -215,6 +230,15 @@ class Problem:
             else:
                 self.names.append((n, None))
         self.specs = [FITTABLE[n] for n, _ in self.names]
+        # EBS regime: kappa / k0 <= 0.25 at every wavelength, k0 = 2 pi / lambda; the
+        # longest wavelength has the smallest k0
+        self.extinction_limit = (EBS_KAPPA_OVER_K0 * 2.0 * math.pi /
+                                 (1e-3 * float(np.max(self.wavelengths))))
+        if regime == "ebs":
+            self.specs = [ParamSpec(s.lower, min(s.upper, self.extinction_limit), s.log,
+                                    min(s.start, self.extinction_limit))
+                          if n == "extinction" else s
+                          for s, (n, _) in zip(self.specs, self.names)]
         self.lower = np.array([s.to_y(s.lower) for s in self.specs], dtype=np.float64)
         self.upper = np.array([s.to_y(s.upper) for s in self.specs], dtype=np.float64)
         self.weights = 1.0 / data.sigma if data.sigma is not None else np.ones(len(data))
@@ -250,7 +274,7 @@ class Problem:
 
     def start(self) -> np.ndarray:
         """The default start (each property's :class:`ParamSpec` start), (p,)."""
-        return self.y_of(np.array([FITTABLE[n].start for n, _ in self.names]))[0]
+        return self.y_of(np.array([s.start for s in self.specs]))[0]
 
     def hold_grains(self) -> np.ndarray:
         """(p,) booleans: the grain variables."""
@@ -416,10 +440,23 @@ def _diagnose(problem: Problem, y: np.ndarray, err: np.ndarray, corr: np.ndarray
     out = []
     for j, (label, spec) in enumerate(zip(labels, problem.specs)):
         span = problem.upper[j] - problem.lower[j]
+        ebs_bound = (label == "extinction" and problem.regime == "ebs" and
+                     spec.upper == problem.extinction_limit)
         if y[j] - problem.lower[j] <= AT_BOUND * span:
             out.append(f"{label} = {x[j]:.4g} is at its lower bound {spec.lower:g}")
+        elif problem.upper[j] - y[j] <= AT_BOUND * span and ebs_bound:
+            out.append(f"extinction = {x[j]:.4g} /um sits on the bound of the EBS regime "
+                       f"(kappa/k0 <= {EBS_KAPPA_OVER_K0:g} at "
+                       f"{float(np.max(problem.wavelengths)):g} nm): the data pull the cone "
+                       "broader than enhanced back-scattering theory describes (--regime free "
+                       "lifts the bound)")
         elif problem.upper[j] - y[j] <= AT_BOUND * span:
             out.append(f"{label} = {x[j]:.4g} is at its upper bound {spec.upper:g}")
+    kappa = problem.fixed.get("extinction")
+    if isinstance(kappa, (int, float)) and kappa > problem.extinction_limit * (1 + 1e-9):
+        out.append(f"extinction = {kappa:g} /um (fixed) is outside the EBS regime: kappa/k0 = "
+                   f"{kappa * 1e-3 * float(np.max(problem.wavelengths)) / (2 * math.pi):.3g}"
+                   f" > {EBS_KAPPA_OVER_K0:g} at {float(np.max(problem.wavelengths)):g} nm")
     for label in undetermined:
         out.append(f"{label} is not determined by the data (the Jacobian is singular in its "
                    "direction)")
@@ -529,8 +566,8 @@ def radius_branches(wavelength: float, albedo: float, albedo_sigma: float, fixed
 
 def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = None,
         starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH, seed: int = 0,
-        max_iterations: int = 60, progress: Callable[[str], None] | None = None
-        ) -> FitResult:
+        max_iterations: int = 60, progress: Callable[[str], None] | None = None,
+        regime: str = "ebs") -> FitResult:
     """Fit the plugin to ``data``.
 
     Args:
@@ -543,9 +580,13 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
         seed: seed of the design's scrambling.
         max_iterations: Levenberg-Marquardt iterations of the global phase.
         progress: called with a line of text after each stage.
+        regime: ``"ebs"`` bounds the extinction so that kappa / k0 <= 0.25 at every fitted
+            wavelength (the narrow-cone regime of enhanced back-scattering theory; a fit on
+            that bound says so), ``"free"`` keeps the full range.
 
     Raises:
-        ValueError: unknown, repeated or inconsistent parameter names; starts or polish < 1.
+        ValueError: unknown, repeated or inconsistent parameter names; starts or polish < 1;
+            an unknown regime.
     """
     if starts < 1:
         raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
@@ -555,13 +596,13 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
         raise ValueError("no measurements to fit")
     with use_variant(BATCH_VARIANT):  # once for the whole fit: switching variants is slow
         return _fit(data, list(free or default_free(data, fixed)), dict(fixed or {}), starts,
-                    polish, seed, max_iterations, progress)
+                    polish, seed, max_iterations, progress, regime)
 
 
-def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress
+def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress, regime
          ) -> FitResult:
     t0 = time.perf_counter()
-    problem = Problem(data, free, fixed)
+    problem = Problem(data, free, fixed, regime)
     optics = _optics(problem)
     if progress:
         progress(f"optics: {optics['source']}" + (
@@ -574,7 +615,8 @@ def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress
     problem.grain_derivatives = False  # the grains are held during the global phase
     result: MultistartResult = multistart(
         problem, y0, polish_count, hold if hold.any() else None, max_iterations,
-        refine_count=max(16, starts // 4), progress=progress, before_free=lambda: setattr(problem, "grain_derivatives", True))
+        refine_count=max(16, starts // 4), progress=progress,
+        before_free=lambda: setattr(problem, "grain_derivatives", True))
     y = result.y
     x = problem.x_of(y)[0]
 
@@ -600,11 +642,22 @@ def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress
                                          uncertainties["albedo"], fixed)
         if note:
             optics["radius_note"] = note
+    regime_info = {"name": regime, "kappa_over_k0_max": EBS_KAPPA_OVER_K0 if regime == "ebs"
+                   else None, "extinction_limit": problem.extinction_limit
+                   if regime == "ebs" else None,
+                   "kappa_over_k0": _kappa_over_k0(parameters.get("extinction", 1.0),
+                                                   problem.wavelengths)}
     return FitResult(parameters, by_wavelength, uncertainties, problem.free, data, model_brf,
                      chi2, problem.evaluations, time.perf_counter() - t0,
                      [float(c) for c in result.start_costs], result.agreeing,
                      ([_label(n, w) for n, w in problem.names], corr), warnings,
-                     chi2_per_point, branches, optics, result.stages)
+                     chi2_per_point, branches, optics, result.stages, regime_info)
+
+
+def _kappa_over_k0(extinction: float, wavelengths: np.ndarray) -> dict[str, float]:
+    """kappa / k0 (k0 = 2 pi / lambda) at each wavelength (nm)."""
+    return {f"{w:g}": float(extinction) * 1e-3 * float(w) / (2.0 * math.pi)
+            for w in wavelengths}
 
 
 def _predict_rows(by_wavelength: dict, data: Measurements) -> np.ndarray:

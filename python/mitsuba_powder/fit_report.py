@@ -74,6 +74,7 @@ def report_dict(result: FitResult, held_out: tuple[Measurements, np.ndarray] | N
                                                                  d.wavelength == w)}
                            for w in d.wavelengths()],
         "chi2_per_point": result.chi2_per_point,
+        "regime": result.regime,
         "geometry": _geometry_summary(d),
         "optics": result.optics,
         "warnings": result.warnings,

@@ -16,18 +16,30 @@ from .measurements import Measurements
 def compare_models(data: Measurements, free: list[str] | None = None,
                    fixed: dict | None = None, starts: int = 64) -> list[dict]:
     """Fit the powder model (per wavelength) and every baseline; one row per model and
-    wavelength with the number of parameters and the fit statistics."""
+    wavelength with the number of parameters and the fit statistics. The powder model is fitted
+    in the EBS regime (kappa/k0 <= 0.25) and, as a row of its own where the optimum differs,
+    with the bound lifted (``powder (free regime)``)."""
     if starts < 1:
         raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
     rows = []
     for lam in data.wavelengths():
         d = data.subset(data.wavelength == lam)
-        result = fit(d, free, fixed, starts=starts)
-        rows.append({"model": "powder", "wavelength": float(lam),
-                     "parameters": len(result.uncertainties),
-                     **statistics(result.model_brf, d), "seconds": result.seconds,
-                     "fitted": {k: v for k, v in result.parameters.items()
-                                if k in result.free}})
+        results = {regime: fit(d, free, fixed, starts=starts, regime=regime)
+                   for regime in ("ebs", "free")}
+        # the EBS regime is the powder model's row; the free regime gets its own row where
+        # lifting the bound changes the optimum
+        differ = results["free"].loss < results["ebs"].loss * (1.0 - 1e-6)
+        for regime, result in results.items():
+            if regime == "free" and not differ:
+                continue
+            rows.append({"model": "powder" if regime == "ebs" else "powder (free regime)",
+                         "regime": regime, "wavelength": float(lam),
+                         "parameters": len(result.uncertainties),
+                         **statistics(result.model_brf, d), "seconds": result.seconds,
+                         "fitted": {k: v for k, v in result.parameters.items()
+                                    if k in result.free},
+                         "kappa_over_k0": result.regime["kappa_over_k0"],
+                         "warnings": result.warnings})
     for name in MODELS:
         for b in fit_baseline(name, data, starts=starts):
             sel = data.wavelength == b.wavelength
