@@ -165,18 +165,21 @@ class BatchBRF:
         n = len(self.data)
         grads: dict[str, np.ndarray] = {}
         with use_variant(BATCH_VARIANT):
-            sources = {}
+            sources, lanes = {}, {}
             for name in self.varying:
                 v = np.asarray(values[name], dtype=np.float32).reshape(self.batch)
                 sources[name] = mi.Float(v)
                 if derivatives:
                     dr.enable_grad(sources[name])
-                self.params[name] = dr.gather(mi.Float, sources[name], self.lane_set)
+                lanes[name] = dr.gather(mi.Float, sources[name], self.lane_set)
             if "tau_o" not in self.varying:
                 if tau_o is None:
                     raise ValueError("tau_o per wavelength is needed unless it is varying")
                 table = mi.Float(np.asarray(tau_o, dtype=np.float32).reshape(w))
-                self.params["tau_o"] = dr.gather(mi.Float, table, self.lane_wavelength)
+                lanes["tau_o"] = dr.gather(mi.Float, table, self.lane_wavelength)
+            dr.eval(lanes)  # one launch for every gather (the plugin makes them opaque)
+            for name, value in lanes.items():
+                self.params[name] = value
             texels = np.full(self.texels, albedo[-1, -1], np.float32)
             texels[:self.batch * w] = albedo.ravel()
             tex = mi.TensorXf(np.tile(texels[None, :, None], (2, 1, 1)))
