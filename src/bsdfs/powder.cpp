@@ -7,6 +7,7 @@
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
 
+#include "powder_lobes.h"
 #include "powder_optics.h"
 
 #include <cmath>
@@ -338,20 +339,32 @@ public:
 
         Vector3f wo = warp::square_to_cosine_hemisphere(sample2);
 
+        // sample1 rescaled within the picked lobe's interval: a third uniform number
+        Float u3 = dr::select(pick_coherent, sample1 / dr::maximum(w.coherent, 1e-30f),
+                              (sample1 - w.coherent) / dr::maximum(w.surface, 1e-30f));
+        u3 = dr::clip(u3, 0.f, dr::OneMinusEpsilon<Float>);
         if (lobes.coherent)
-            dr::masked(wo, pick_coherent) = sample_coherent(si.wi, w.width_coherent, sample2);
+            dr::masked(wo, pick_coherent) =
+                sample_coherent(si.wi, w.width_coherent, sample2, u3);
         if (lobes.surface)
-            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2);
+            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2, u3);
 
         auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
 
         bs.wo = wo;
         bs.pdf = pdf;
         bs.eta = 1.f;
-        bs.sampled_type = dr::select(pick_diffuse, UInt32(+BSDFFlags::DiffuseReflection),
+        // The cosine lobe samples the volume terms; when they are not enabled it
+        // is only a fallback of the glossy lobes, reported as the first of them
+        bool volume = lobes.single || lobes.multiple;
+        uint32_t cosine_type = volume ? +BSDFFlags::DiffuseReflection
+                                      : +BSDFFlags::GlossyReflection,
+                 cosine_component = volume ? m_comp_volume
+                                   : lobes.coherent ? m_comp_coherent : m_comp_surface;
+        bs.sampled_type = dr::select(pick_diffuse, UInt32(cosine_type),
                                      UInt32(+BSDFFlags::GlossyReflection));
         bs.sampled_component = dr::select(
-            pick_diffuse, UInt32(m_comp_volume),
+            pick_diffuse, UInt32(cosine_component),
             dr::select(pick_coherent, UInt32(m_comp_coherent), UInt32(m_comp_surface)));
 
         Mask valid = active && pdf > 0.f;
@@ -481,31 +494,6 @@ private:
         return { m_single && volume, m_multiple && volume,
                  m_coherent && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_coherent),
                  m_surface && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_surface) };
-    }
-
-    // ---------------------------------------------------- numerical helpers
-
-    /// 1 - exp(-x) for x >= 0, accurate for small x (Dr.Jit has no expm1)
-    template <typename T> static T one_minus_exp_neg(const T &x) {
-        dr::mask_t<T> small = x < 0.03f;
-        T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
-        T series = xs * (1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
-                        (1.f - xs * .25f * (1.f - xs * .2f))));
-        return dr::select(small, series, 1.f - dr::exp(-xl));
-    }
-
-    /// (1 - exp(-x)) / x for x >= 0, equal to 1 at x = 0
-    template <typename T> static T one_minus_exp_neg_over_x(const T &x) {
-        dr::mask_t<T> small = x < 0.03f;
-        T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
-        T series = 1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
-                   (1.f - xs * .25f * (1.f - xs * .2f)));
-        return dr::select(small, series, (1.f - dr::exp(-xl)) / xl);
-    }
-
-    /// s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
-    template <typename T> static T s_func(const T &c, const T &tau) {
-        return tau * one_minus_exp_neg_over_x(2.f * c * tau);
     }
 
     // ------------------------------------------------------- wavelengths
@@ -796,7 +784,7 @@ private:
                       phase = (1.f - dr::square(m_g)) / (t * dr::sqrt(t));
                 Float factor = phase / mu_sum;
                 if (m_finite_thickness)
-                    factor *= one_minus_exp_neg(m_kappa * m_thickness *
+                    factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
                                                 (dr::rcp(mu_i) + dr::rcp(mu_o)));
                 volume += rho * factor;
             }
@@ -808,7 +796,7 @@ private:
                     c0 = dr::sqrt(c0_sq);
 
                 if (lobes.multiple)
-                    volume += rho2_3 * (s_func(c0, tau) + h) /
+                    volume += rho2_3 * (powder::s_func(c0, tau) + h) /
                               ((1.f + c0 * mu_i) * (1.f + c0 * mu_o));
 
                 if (lobes.coherent) {
@@ -821,7 +809,7 @@ private:
                         // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
                         w = c * q + mu_sum / (2.f * q),
                         denom = dr::square(w) + dr::square(u * q);
-                    volume += rho2_3 * (h + s_func(c, tau)) / denom;
+                    volume += rho2_3 * (h + powder::s_func(c, tau)) / denom;
                 }
             }
             result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
@@ -849,8 +837,7 @@ private:
 
     /// Angle between wo and the mirror direction of wi (stable near 0)
     static Float mirror_angle(const Vector3f &wi, const Vector3f &wo) {
-        Vector3f r(-wi.x(), -wi.y(), wi.z());
-        return 2.f * dr::atan2(dr::norm(wo - r), dr::norm(wo + r));
+        return powder::angle_between(wo, Vector3f(-wi.x(), -wi.y(), wi.z()));
     }
 
     // ------------------------------------------------------------ sampling
@@ -865,7 +852,7 @@ private:
         // Rough estimates of each term's directional albedo (integral of
         // f cos over the hemisphere = integral of f over the projected disc)
         Float c0 = dr::safe_sqrt(3.f * (1.f - rho) * (1.f - rho * g));
-        Float s0 = tau * one_minus_exp_neg_over_x(2.f * c0 * tau);
+        Float s0 = powder::s_func(c0, tau);
         Float e_diffuse = 0.f, e_coherent = 0.f, e_surface = 0.f;
         if (lobes.single)
             e_diffuse += av * .25f * rho / (mu + .5f);
@@ -875,8 +862,7 @@ private:
 
         // Width of the cone in the projected plane: C falls off where
         // alpha ~ c0 + v, i.e. |wo_xy - wi_xy| ~ (kappa / k0) (c0 + 1 / mu_i).
-        // Broader cones are left to the cosine lobe (a projected lobe centred
-        // near the rim would lose half its samples off the disc).
+        // Broader cones are left to the cosine lobe.
         Float width_c = dr::minimum(
             .5f * kappa * lam_mean * dr::InvTwoPi<ScalarFloat> * (c0 + dr::rcp(mu)), .25f);
         if (lobes.coherent) {
@@ -888,9 +874,13 @@ private:
         if (m_specular == SpecularModel::HarveyShack) {
             width_s = lam_mean * dr::InvPi<ScalarFloat> * dr::InvSqrtTwo<ScalarFloat> /
                       dr::detach(m_lc);
+            // S integrated over the projected plane, times the share of a centred
+            // Gaussian of this width inside the unit disc (small l_c: wide lobes
+            // carry little energy onto the hemisphere)
             if (lobes.surface)
                 e_surface = 16.f * dr::square(dr::Pi<ScalarFloat>) * as * dr::square(mu) /
-                            dr::square(lam_mean);
+                            dr::square(lam_mean) *
+                            powder::one_minus_exp_neg(.5f / dr::square(width_s));
         } else {
             width_s = dr::detach(m_sigma);
             if (lobes.surface)
@@ -917,56 +907,36 @@ private:
 
     static Float h_of(Float a, Float b) { return a * b / (a + b); }
 
-    /// A direction whose projection is wi_xy + delta; z < 0 if off the disc
-    static Vector3f from_projected(Float x, Float y) {
-        Float r2 = x * x + y * y;
-        return Vector3f(x, y, dr::select(r2 < 1.f, dr::safe_sqrt(1.f - r2), -1.f));
-    }
-
-    /// Coherent lobe: 2D Cauchy distribution of wo_xy - wi_xy with scale b
-    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u) {
-        Float r = b * dr::sqrt(u.x() * (2.f - u.x())) / (1.f - u.x());
-        auto [s, c] = dr::sincos(dr::TwoPi<ScalarFloat> * u.y());
-        return from_projected(wi.x() + r * c, wi.y() + r * s);
+    /// Coherent lobe: a 2D Cauchy law of wo_xy - wi_xy with scale b, truncated
+    /// at the rim of the projected disc (powder_lobes.h)
+    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u,
+                                    Float u3) {
+        return powder::sample_projected<powder::Radial::Cauchy>(
+            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, u, u3);
     }
 
     static Float pdf_coherent(const Vector3f &wi, const Vector3f &wo, Float b) {
-        Float r2 = dr::square(wo.x() - wi.x()) + dr::square(wo.y() - wi.y()),
-              t = r2 + dr::square(b);
-        return b * dr::InvTwoPi<ScalarFloat> / (t * dr::sqrt(t)) * Frame3f::cos_theta(wo);
+        return powder::pdf_projected<powder::Radial::Cauchy>(
+            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, wo);
     }
 
-    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u) const {
-        auto [s, c] = dr::sincos(dr::TwoPi<ScalarFloat> * u.y());
-        Float r = width * dr::sqrt(-2.f * dr::log(1.f - u.x()));
-        if (m_specular == SpecularModel::HarveyShack) {
-            // 2D Gaussian of wo_xy + wi_xy in the projected plane
-            return from_projected(-wi.x() + r * c, -wi.y() + r * s);
-        } else {
-            // 2D Gaussian in the tangent plane of the mirror direction
-            // (exponential map), with theta = r
-            Vector3f mirror(-wi.x(), -wi.y(), wi.z());
-            Frame3f frame(mirror);
-            auto [sin_t, cos_t] = dr::sincos(r);
-            Vector3f wo = frame.to_world(Vector3f(sin_t * c, sin_t * s, cos_t));
-            return dr::select(r < MaxGaussianAngle, wo, Vector3f(0.f, 0.f, -1.f));
-        }
+    /// Surface lobe. Harvey-Shack: a 2D Gaussian of wo_xy + wi_xy (the spatial
+    /// frequency times lambda, MODEL.md Eq. 21-22) truncated at the rim of the
+    /// projected disc; Gaussian: a 2D Gaussian in the tangent plane of the mirror
+    /// direction (exponential map) truncated at the horizon (powder_lobes.h)
+    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u,
+                            Float u3) const {
+        if (m_specular == SpecularModel::HarveyShack)
+            return powder::sample_projected<powder::Radial::Gaussian>(
+                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width, u, u3);
+        return powder::sample_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, u, u3);
     }
 
     Float pdf_surface(const Vector3f &wi, const Vector3f &wo, Float width) const {
-        if (m_specular == SpecularModel::HarveyShack) {
-            Float r2 = dr::square(wo.x() + wi.x()) + dr::square(wo.y() + wi.y()),
-                  inv_var = dr::rcp(dr::square(width));
-            return inv_var * dr::InvTwoPi<ScalarFloat> * dr::exp(-.5f * r2 * inv_var) *
-                   Frame3f::cos_theta(wo);
-        } else {
-            Float theta = mirror_angle(wi, wo), inv_var = dr::rcp(dr::square(width));
-            Float jacobian = dr::select(theta < 1e-3f, 1.f + dr::square(theta) * (1.f / 6.f),
-                                        theta / dr::sin(theta));
-            Float pdf = inv_var * dr::InvTwoPi<ScalarFloat> *
-                        dr::exp(-.5f * dr::square(theta) * inv_var) * jacobian;
-            return dr::select(theta < MaxGaussianAngle, pdf, 0.f);
-        }
+        if (m_specular == SpecularModel::HarveyShack)
+            return powder::pdf_projected<powder::Radial::Gaussian>(
+                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width, wo);
+        return powder::pdf_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, wo);
     }
 
     Float pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
@@ -1142,8 +1112,6 @@ private:
         return out;
     }
 
-    static constexpr float MaxGaussianAngle = 3.1f;
-
 private:
     ref<Texture> m_albedo;                          ///< null: albedo from Mie theory
     Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
@@ -1173,53 +1141,51 @@ NAMESPACE_END(mitsuba)
 
 // ---------------------------------------------------------------------------
 //  Registration. CMake compiles this file once per Mitsuba variant with
-//  POWDER_VARIANT_INDEX set (so that the 13 variants build in parallel and
-//  incrementally), and once with POWDER_REGISTRY for the plugin entry point.
+//  POWDER_VARIANT=<name> and its types (POWDER_BACKEND_<scalar|llvm|cuda>,
+//  POWDER_CHANNELS = 3 (RGB), 1 (mono) or 0 (spectral), POWDER_POLARIZED), so
+//  that the variants build in parallel and incrementally, and once with
+//  POWDER_REGISTRY for the plugin entry point, which registers every variant of
+//  the generated list powder_variants.h (CMakeLists.txt: POWDER_VARIANTS).
 // ---------------------------------------------------------------------------
 
 #define POWDER_CAT_(a, b) a##b
 #define POWDER_CAT(a, b) POWDER_CAT_(a, b)
+#define POWDER_STR_(a) #a
+#define POWDER_STR(a) POWDER_STR_(a)
 
-#if defined(POWDER_VARIANT_INDEX)
+#if defined(POWDER_VARIANT)
 NAMESPACE_BEGIN(mitsuba)
 namespace powder_variant {
-    using LLVMF = dr::DiffArray<JitBackend::LLVM, float>;
-    using CUDAF = dr::DiffArray<JitBackend::CUDA, float>;
-#if POWDER_VARIANT_INDEX == 0
-    using F = float; using S = Color<float, 3>;
-#elif POWDER_VARIANT_INDEX == 1
-    using F = float; using S = Spectrum<float, 4>;
-#elif POWDER_VARIANT_INDEX == 2
-    using F = float; using S = MuellerMatrix<Spectrum<float, 4>>;
-#elif POWDER_VARIANT_INDEX == 3
-    using F = LLVMF; using S = Color<LLVMF, 3>;
-#elif POWDER_VARIANT_INDEX == 4
-    using F = LLVMF; using S = Color<LLVMF, 1>;
-#elif POWDER_VARIANT_INDEX == 5
-    using F = LLVMF; using S = MuellerMatrix<Color<LLVMF, 1>>;
-#elif POWDER_VARIANT_INDEX == 6
-    using F = LLVMF; using S = Spectrum<LLVMF, 4>;
-#elif POWDER_VARIANT_INDEX == 7
-    using F = LLVMF; using S = MuellerMatrix<Spectrum<LLVMF, 4>>;
-#elif POWDER_VARIANT_INDEX == 8
-    using F = CUDAF; using S = Color<CUDAF, 3>;
-#elif POWDER_VARIANT_INDEX == 9
-    using F = CUDAF; using S = Color<CUDAF, 1>;
-#elif POWDER_VARIANT_INDEX == 10
-    using F = CUDAF; using S = MuellerMatrix<Color<CUDAF, 1>>;
-#elif POWDER_VARIANT_INDEX == 11
-    using F = CUDAF; using S = Spectrum<CUDAF, 4>;
-#elif POWDER_VARIANT_INDEX == 12
-    using F = CUDAF; using S = MuellerMatrix<Spectrum<CUDAF, 4>>;
+#if defined(POWDER_BACKEND_scalar)
+    using F = float;
+#elif defined(POWDER_BACKEND_llvm)
+    using F = dr::DiffArray<JitBackend::LLVM, float>;
+#elif defined(POWDER_BACKEND_cuda)
+    using F = dr::DiffArray<JitBackend::CUDA, float>;
 #else
-#error "POWDER_VARIANT_INDEX must lie in 0..12"
+#error "POWDER_BACKEND_<scalar|llvm|cuda> is not defined"
 #endif
-    static_assert(detail::variant<F, S>::name != nullptr,
-                  "this variant is not enabled in the installed Mitsuba");
+#if POWDER_CHANNELS == 0
+    using U = Spectrum<F, 4>;
+#else
+    using U = Color<F, POWDER_CHANNELS>;
+#endif
+#if POWDER_POLARIZED
+    using S = MuellerMatrix<U>;
+#else
+    using S = U;
+#endif
+    constexpr bool same(const char *a, const char *b) {
+        return *a == *b && (*a == '\0' || same(a + 1, b + 1));
+    }
+    static_assert(detail::variant<F, S>::name != nullptr &&
+                      same(detail::variant<F, S>::name, POWDER_STR(POWDER_VARIANT)),
+                  "the types derived from POWDER_VARIANT do not match the installed "
+                  "Mitsuba's variant of that name");
 }
 
-void POWDER_CAT(powder_register_, POWDER_VARIANT_INDEX)(std::string_view name,
-                                                         PluginRegisterFn fn) {
+void POWDER_CAT(powder_register_, POWDER_VARIANT)(std::string_view name,
+                                                   PluginRegisterFn fn) {
     using P = Powder<powder_variant::F, powder_variant::S>;
     fn(name, P::Variant, P::Type,
        [](void *, const Properties &p) -> ref<Object> { return new P(p); });
@@ -1227,22 +1193,17 @@ void POWDER_CAT(powder_register_, POWDER_VARIANT_INDEX)(std::string_view name,
 NAMESPACE_END(mitsuba)
 
 #elif defined(POWDER_REGISTRY)
+#include "powder_variants.h"
 NAMESPACE_BEGIN(mitsuba)
-#define POWDER_DECLARE(i) void powder_register_##i(std::string_view, PluginRegisterFn);
-POWDER_DECLARE(0) POWDER_DECLARE(1) POWDER_DECLARE(2) POWDER_DECLARE(3)
-POWDER_DECLARE(4) POWDER_DECLARE(5) POWDER_DECLARE(6) POWDER_DECLARE(7)
-POWDER_DECLARE(8) POWDER_DECLARE(9) POWDER_DECLARE(10) POWDER_DECLARE(11)
-POWDER_DECLARE(12)
+#define POWDER_DECLARE(v) void powder_register_##v(std::string_view, PluginRegisterFn);
+POWDER_FOR_EACH_VARIANT(POWDER_DECLARE)
 NAMESPACE_END(mitsuba)
 
 extern "C" MI_EXPORT void init_plugin(std::string_view name, mitsuba::PluginRegisterFn fn) {
     using namespace mitsuba;
-    powder_register_0(name, fn);  powder_register_1(name, fn);  powder_register_2(name, fn);
-    powder_register_3(name, fn);  powder_register_4(name, fn);  powder_register_5(name, fn);
-    powder_register_6(name, fn);  powder_register_7(name, fn);  powder_register_8(name, fn);
-    powder_register_9(name, fn);  powder_register_10(name, fn); powder_register_11(name, fn);
-    powder_register_12(name, fn);
+#define POWDER_REGISTER(v) powder_register_##v(name, fn);
+    POWDER_FOR_EACH_VARIANT(POWDER_REGISTER)
 }
 #else
-#error "compile powder.cpp with POWDER_VARIANT_INDEX=<0..12> or POWDER_REGISTRY"
+#error "compile powder.cpp with POWDER_VARIANT=<variant> or POWDER_REGISTRY"
 #endif
