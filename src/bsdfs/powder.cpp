@@ -20,6 +20,68 @@
 
 NAMESPACE_BEGIN(mitsuba)
 
+namespace powder_param {
+
+/// Valid values of a parameter: an interval with open or closed ends
+struct Range {
+    double lo, hi;
+    bool lo_closed, hi_closed;
+
+    /// Closed ends are compared in single precision: the plugin stores floats,
+    /// and so may the caller (e.g. sigma = pi/2 rounded up)
+    bool contains(double v) const {
+        float vf = (float) v;
+        return !std::isnan(v) && (lo_closed ? vf >= (float) lo : v > lo) &&
+               (hi_closed ? vf <= (float) hi : v < hi);
+    }
+};
+
+/// Throw the project's error for a value outside its range
+inline void check_range(const char *name, double value, const Range &r) {
+    if (!r.contains(value))
+        Throw("powder: property \"%s\" = %g is out of range; valid range is %s%g, %g%s", name,
+              value, r.lo_closed ? "[" : "(", r.lo, r.hi, r.hi_closed ? "]" : ")");
+}
+
+constexpr double Inf = std::numeric_limits<double>::infinity();
+
+/**
+ * The float parameters of the model (MODEL.md, "Parameters"). One row each drives
+ * reading the property (default, range), the range check after an edit through
+ * mi.traverse (parameters_changed), the traversal key and whether it is
+ * differentiable; tests/test_params_doc.py checks that the doc comment above the
+ * class and docs/powder.md list the same names, defaults and ranges.
+ */
+struct Spec {
+    const char *name;
+    const char *unit;     ///< "-" when dimensionless
+    double def;           ///< default value when the property is absent
+    const char *def_doc;  ///< the default as documented
+    Range range;
+    bool fittable;        ///< differentiable and exposed by mi.traverse
+};
+
+enum Id : size_t {
+    AmplitudeVolume, G, Extinction, TauO, Thickness, AmplitudeSurface, CorrelationLength,
+    Sigma, Radius, Radius2, Fraction2, Count
+};
+
+inline constexpr Spec Table[Count] = {
+    { "amplitude_volume",   "-",    1.0,     "1.0",                  { 0.0, Inf, true, false }, true },
+    { "g",                  "-",    0.0,     "0.0",                  { -1.0, 1.0, false, false }, true },
+    { "extinction",         "1/um", 1.0,     "1.0",                  { 0.0, Inf, false, false }, true },
+    { "tau_o",              "-",    2.0 / 3, "from Fresnel of Re(eta)", { 0.0, Inf, true, false }, true },
+    { "thickness",          "um",   Inf,     "infinite",             { 0.0, Inf, true, true }, true },
+    { "amplitude_surface",  "um^2", 0.0,     "0.0",                  { 0.0, Inf, true, false }, true },
+    { "correlation_length", "um",   1.0,     "1.0",                  { 0.0, Inf, false, false }, true },
+    { "sigma",              "rad",  0.1,     "0.1",                  { 0.0, 0.5 * M_PI, false, true }, true },
+    { "radius",             "um",   0.017,   "0.017",                { 0.0, Inf, false, false }, true },
+    { "radius2",            "um",   1.0,     "none (one population)", { 0.0, Inf, false, false }, true },
+    { "fraction2",          "-",    0.0,     "none (one population)", { 0.0, 1.0, true, true }, true },
+};
+
+} // namespace powder_param
+
 /**!
 
 .. _bsdf-powder:
@@ -28,6 +90,40 @@ Dry powder (:monosp:`powder`)
 -----------------------------
 
 .. pluginparameters::
+
+ * - albedo
+   - |spectrum| or |texture|
+   - Single-scattering albedo rho of the grains, values in [0, 1] (Default: none:
+     from Mie theory for the grains, see ``radius``)
+   - |exposed|, |differentiable|
+
+ * - radius
+   - |float|
+   - Grain radius r in micrometres, without ``albedo`` (Default: 0.017, range (0, inf);
+     size parameter 2 pi r / lambda in [1e-3, 200])
+   - |exposed|, |differentiable|
+
+ * - radius2
+   - |float|
+   - Radius of a second grain population in micrometres; needs ``fraction2``
+     (Default: none (one population), range (0, inf))
+   - |exposed|, |differentiable|
+
+ * - fraction2
+   - |float|
+   - Volume fraction of the second population; needs ``radius2``
+     (Default: none (one population), range [0, 1])
+   - |exposed|, |differentiable|
+
+ * - material
+   - |string|
+   - Grain material for Mie theory and tau_o: ``hematite``, ``magnetite`` or a
+     refractiveindex.info YAML file (Default: ``hematite``)
+
+ * - eta, k
+   - |float| or |spectrum|
+   - Optical constants n and k of the grain material, instead of ``material``; both or
+     neither (Default: from ``material``, range eta > 0, k >= 0)
 
  * - amplitude_volume
    - |float|
@@ -44,14 +140,10 @@ Dry powder (:monosp:`powder`)
    - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range (0, inf))
    - |exposed|, |differentiable|
 
- * - albedo
-   - |spectrum| or |texture|
-   - Single-scattering albedo rho of the grains (required for now, values in [0, 1])
-   - |exposed|, |differentiable|
-
  * - tau_o
    - |float|
-   - Extrapolation ratio of the diffusion boundary (Default: 2/3, range [0, inf))
+   - Extrapolation ratio of the diffusion boundary; exposed only when given
+     (Default: from Fresnel of Re(eta), range [0, inf))
    - |exposed|, |differentiable|
 
  * - thickness
@@ -61,12 +153,14 @@ Dry powder (:monosp:`powder`)
 
  * - amplitude_surface
    - |float|
-   - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian) (Default: 0.0)
+   - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian)
+     (Default: 0.0, range [0, inf))
    - |exposed|, |differentiable|
 
  * - correlation_length
    - |float|
-   - Correlation length l_c of the surface in micrometres, Harvey-Shack only (Default: 1.0)
+   - Correlation length l_c of the surface in micrometres, Harvey-Shack only
+     (Default: 1.0, range (0, inf))
    - |exposed|, |differentiable|
 
  * - specular
@@ -92,12 +186,16 @@ Dry powder (:monosp:`powder`)
 
  * - wavelength
    - |float|
-   - Wavelength in nm at which mono variants evaluate the model (Default: 700)
+   - Wavelength in nm at which mono variants evaluate the model (Default: 700,
+     range (0, inf))
 
  * - rgb_wavelengths
    - |string|
    - Wavelengths in nm of the R, G, B channels in RGB variants
      (Default: ``611.3, 549.1, 464.3``)
+
+The float parameters and their defaults and ranges are those of the table
+``powder_param::Table`` above (tests/test_params_doc.py compares the two).
 
 The dry-powder reflectance model of Gerardin, Martinetto and Holzschuch
 (JOSA A 40(9), 2023), Eq. 23, with the conventions and corrections of the
@@ -138,17 +236,22 @@ public:
     static constexpr float TableMin = 360.f, TableStep = 1.f;
 
     Powder(const Properties &props) : Base(props) {
-        constexpr double Inf = std::numeric_limits<double>::infinity();
-
-        m_av        = read_float(props, "amplitude_volume", 1.0, 0.0, Inf, true, false);
-        m_g         = read_float(props, "g", 0.0, -1.0, 1.0, false, false);
-        m_kappa     = read_float(props, "extinction", 1.0, 0.0, Inf, false, false);
         m_tau_given = props.has_property("tau_o");
-        m_tau_o     = read_float(props, "tau_o", 2.0 / 3.0, 0.0, Inf, true, false);
-        m_thickness = read_float(props, "thickness", Inf, 0.0, Inf, true, true);
-        m_as        = read_float(props, "amplitude_surface", 0.0, 0.0, Inf, true, false);
-        m_lc        = read_float(props, "correlation_length", 1.0, 0.0, Inf, false, false);
-        m_sigma     = read_float(props, "sigma", 0.1, 0.0, 0.5 * M_PI, false, true);
+        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        if (m_two_populations && !(props.has_property("radius2") && props.has_property("fraction2")))
+            Throw("powder: a second grain population needs both \"radius2\" and "
+                  "\"fraction2\"; got only \"%s\"",
+                  props.has_property("radius2") ? "radius2" : "fraction2");
+        // The float parameters, from the table powder_param::Table
+        for (size_t i = 0; i < powder_param::Count; ++i) {
+            const powder_param::Spec &spec = powder_param::Table[i];
+            double value = spec.def;
+            if (props.has_property(spec.name)) {
+                value = props.get<double>(spec.name);
+                powder_param::check_range(spec.name, value, spec.range);
+            }
+            this->*member((powder_param::Id) i) = Float((ScalarFloat) value);
+        }
 
         std::string specular = props.get<std::string>("specular", "harvey_shack");
         if (specular == "harvey_shack")
@@ -170,8 +273,10 @@ public:
             Throw("powder: property \"sampling\" = \"%s\" is not valid; valid "
                   "values are \"lobes\" and \"cosine\"", sampling);
 
-        m_wavelength = (ScalarFloat) read_scalar(props, "wavelength", 700.0, 0.0,
-                                                 Inf, false, false);
+        double wavelength = props.get<double>("wavelength", 700.0);
+        powder_param::check_range("wavelength", wavelength,
+                                  { 0.0, powder_param::Inf, false, false });
+        m_wavelength = (ScalarFloat) wavelength;
         if (props.has_property("rgb_wavelengths") &&
             props.type("rgb_wavelengths") == Properties::Type::Vector) {
             // Python list / XML <vector>
@@ -184,20 +289,7 @@ public:
                 props.get<std::string>("rgb_wavelengths", "611.3, 549.1, 464.3"));
         }
 
-        // Grains: radius (and a second population), optical constants
-        m_radius = read_float(props, "radius", 0.017, 0.0, Inf, false, false);
-        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
-        if (m_two_populations) {
-            if (!props.has_property("radius2") || !props.has_property("fraction2"))
-                Throw("powder: a second grain population needs both \"radius2\" and "
-                      "\"fraction2\"; got only \"%s\"",
-                      props.has_property("radius2") ? "radius2" : "fraction2");
-            m_radius2 = read_float(props, "radius2", 0.1, 0.0, Inf, false, false);
-            m_fraction2 = read_float(props, "fraction2", 0.0, 0.0, 1.0, true, true);
-        } else {
-            m_radius2 = Float(1.f);
-            m_fraction2 = Float(0.f);
-        }
+        // Grains: optical constants of the material
         m_optics = load_optics(props);
 
         if (props.has_property("albedo")) {
@@ -246,44 +338,23 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
-        cb->put("amplitude_volume", m_av, ParamFlags::Differentiable);
-        cb->put("g", m_g, ParamFlags::Differentiable);
-        cb->put("extinction", m_kappa, ParamFlags::Differentiable);
-        if (m_albedo) {
+        for (size_t i = 0; i < powder_param::Count; ++i)
+            if (exposed((powder_param::Id) i))
+                cb->put(powder_param::Table[i].name, this->*member((powder_param::Id) i),
+                        (uint32_t) (powder_param::Table[i].fittable
+                                        ? ParamFlags::Differentiable
+                                        : ParamFlags::NonDifferentiable));
+        if (m_albedo)
             cb->put("albedo", m_albedo, ParamFlags::Differentiable);
-        } else {
-            cb->put("radius", m_radius, ParamFlags::Differentiable);
-            if (m_two_populations) {
-                cb->put("radius2", m_radius2, ParamFlags::Differentiable);
-                cb->put("fraction2", m_fraction2, ParamFlags::Differentiable);
-            }
-        }
-        if (m_tau_given)
-            cb->put("tau_o", m_tau_o, ParamFlags::Differentiable);
-        cb->put("thickness", m_thickness, ParamFlags::Differentiable);
-        cb->put("amplitude_surface", m_as, ParamFlags::Differentiable);
-        if (m_specular == SpecularModel::HarveyShack)
-            cb->put("correlation_length", m_lc, ParamFlags::Differentiable);
-        else
-            cb->put("sigma", m_sigma, ParamFlags::Differentiable);
     }
 
     void parameters_changed(const std::vector<std::string> &keys = {}) override {
-        constexpr double Inf = std::numeric_limits<double>::infinity();
         // Parameters edited through mi.traverse() are checked like properties
-        check_range("amplitude_volume", value_of(m_av), 0.0, Inf, true, false);
-        check_range("g", value_of(m_g), -1.0, 1.0, false, false);
-        check_range("extinction", value_of(m_kappa), 0.0, Inf, false, false);
-        check_range("tau_o", value_of(m_tau_o), 0.0, Inf, true, false);
-        check_range("thickness", value_of(m_thickness), 0.0, Inf, true, true);
-        check_range("amplitude_surface", value_of(m_as), 0.0, Inf, true, false);
-        check_range("correlation_length", value_of(m_lc), 0.0, Inf, false, false);
-        check_range("sigma", value_of(m_sigma), 0.0, 0.5 * M_PI, false, true);
-        check_range("radius", value_of(m_radius), 0.0, Inf, false, false);
-        if (m_two_populations) {
-            check_range("radius2", value_of(m_radius2), 0.0, Inf, false, false);
-            check_range("fraction2", value_of(m_fraction2), 0.0, 1.0, true, true);
-        }
+        for (size_t i = 0; i < powder_param::Count; ++i)
+            if (in_use((powder_param::Id) i))
+                powder_param::check_range(powder_param::Table[i].name,
+                                          value_of(this->*member((powder_param::Id) i)),
+                                          powder_param::Table[i].range);
 
         // An infinite layer needs no thickness factor (and 0 * inf would
         // poison the gradients of the extinction)
@@ -291,8 +362,8 @@ public:
 
         // Opaque first: the Mie tangents below must not bake the radius in as a literal
         // (that would compile a new kernel for every radius an optimiser tries)
-        dr::make_opaque(m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma,
-                        m_radius, m_radius2, m_fraction2);
+        for (size_t i = 0; i < powder_param::Count; ++i)
+            dr::make_opaque(this->*member((powder_param::Id) i));
 
         bool grains_changed = keys.empty() || string::contains(keys, "radius") ||
                               string::contains(keys, "radius2") ||
@@ -301,6 +372,37 @@ public:
             update_mie_tables();
         if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
             check_albedo();
+
+        // RGB and mono: the grain tables hold one value per channel; keep them as
+        // opaque scalars, so that eval reads a broadcast value instead of gathering
+        if constexpr (!is_spectral_v<Spectrum>) {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                if (!m_albedo)
+                    m_rho_channels[c] = dr::gather<Float>(m_rho_table, UInt32((uint32_t) c));
+                if (!m_tau_given)
+                    m_tau_channels[c] = dr::gather<Float>(m_tau_table, UInt32((uint32_t) c));
+            }
+            dr::make_opaque(m_rho_channels, m_tau_channels);
+        }
+
+        if constexpr (!is_spectral_v<Spectrum>) {
+            m_k0_kappa = dr::TwoPi<ScalarFloat> /
+                         (wavelengths_um(dr::zeros<SurfaceInteraction3f>(1)) * m_kappa);
+            dr::make_opaque(m_k0_kappa);
+        }
+
+        // The volume constants are the same for every interaction when the albedo
+        // and tau_o are: precompute them (opaque, so no recompilation per value)
+        m_uniform_volume = false;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            m_uniform_volume = !m_albedo || !m_albedo->is_spatially_varying();
+            if (m_uniform_volume) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
+                m_volume = volume_constants(albedo(si, true), tau_o(si, true));
+                dr::make_opaque(m_volume.rho, m_volume.rho2_3, m_volume.c0_sq, m_volume.c0,
+                                m_volume.s_c0, m_volume.tau);
+            }
+        }
 
         // Detached means, used only to weight the sampling lobes
         m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
@@ -530,12 +632,22 @@ private:
 
     /// Single-scattering albedo per channel: the `albedo` texture or the Mie table
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
-        return m_albedo ? m_albedo->eval(si, active) : lookup(m_rho_table, si, active);
+        if (m_albedo)
+            return m_albedo->eval(si, active);
+        if constexpr (is_spectral_v<Spectrum>)
+            return lookup(m_rho_table, si, active);
+        else
+            return m_rho_channels;
     }
 
     /// Extrapolation ratio per channel: the `tau_o` property or the Fresnel table
     UnpolarizedSpectrum tau_o(const SurfaceInteraction3f &si, Mask active) const {
-        return m_tau_given ? UnpolarizedSpectrum(m_tau_o) : lookup(m_tau_table, si, active);
+        if (m_tau_given)
+            return UnpolarizedSpectrum(m_tau_o);
+        if constexpr (is_spectral_v<Spectrum>)
+            return lookup(m_tau_table, si, active);
+        else
+            return m_tau_channels;
     }
 
     /// A grain table at the channel wavelengths: linear interpolation on the
@@ -572,9 +684,9 @@ private:
             auto [wl_e, v_e] = read_spectrum(props, "eta");
             auto [wl_k, v_k] = read_spectrum(props, "k");
             for (double v : v_e)
-                check_range("eta", v, 0.0, std::numeric_limits<double>::infinity(), false, false);
+                powder_param::check_range("eta", v, { 0.0, powder_param::Inf, false, false });
             for (double v : v_k)
-                check_range("k", v, 0.0, std::numeric_limits<double>::infinity(), true, false);
+                powder_param::check_range("k", v, { 0.0, powder_param::Inf, true, false });
             return powder::table_from_pairs(wl_e, v_e, wl_k, v_k);
         }
         std::string material = props.get<std::string>("material", "hematite");
@@ -752,10 +864,54 @@ private:
 
     // ---------------------------------------------------------- the model
 
+    /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), MODEL.md Eq. 10;
+    /// precomputed in RGB and mono variants, where lambda is fixed
+    UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &lam) const {
+        if constexpr (is_spectral_v<Spectrum>)
+            return dr::TwoPi<ScalarFloat> / (lam * m_kappa);
+        else {
+            DRJIT_MARK_USED(lam);
+            return m_k0_kappa;
+        }
+    }
+
+    /// Per-channel values of the volume terms that depend on the grains only
+    /// (rho, g, tau_o), not on the directions
+    struct VolumeConstants {
+        UnpolarizedSpectrum rho,
+            rho2_3, ///< 3 rho^2, the prefactor of L2 and C
+            c0_sq,  ///< c0^2 = 3 (1 - rho) (1 - rho g), MODEL.md Eq. 10e with alpha = 0
+            c0,
+            s_c0,   ///< s(c0), MODEL.md Eq. 9b
+            tau;    ///< tau_o
+    };
+
+    VolumeConstants volume_constants(const UnpolarizedSpectrum &rho,
+                                     const UnpolarizedSpectrum &tau) const {
+        VolumeConstants k;
+        k.rho = rho;
+        k.tau = tau;
+        k.rho2_3 = 3.f * dr::square(rho);
+        k.c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f);
+        k.c0 = dr::sqrt(k.c0_sq);
+        k.s_c0 = powder::s_func(k.c0, tau);
+        return k;
+    }
+
+    /// The volume constants at an interaction: precomputed in parameters_changed
+    /// when they are the same for every interaction (RGB and mono variants with
+    /// a Mie albedo or a spatially uniform albedo texture)
+    VolumeConstants volume_constants(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_uniform_volume)
+            return m_volume;
+        return volume_constants(albedo(si, active), tau_o(si, active));
+    }
+
     /**
-     * The BRDF (without the cosine factor) of MODEL.md for the enabled lobes.
-     * Directions outside `active` are replaced by the normal so that no
-     * infinity reaches the gradients of masked-out lanes.
+     * The BRDF (without the cosine factor) of MODEL.md, Eq. 23, for the enabled
+     * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Directions outside `active` are
+     * replaced by the normal so that no infinity reaches the gradients of
+     * masked-out lanes.
      */
     UnpolarizedSpectrum eval_brdf(const Lobes &lobes, const SurfaceInteraction3f &si,
                                   const Vector3f &wo_, const UnpolarizedSpectrum &lam,
@@ -764,19 +920,23 @@ private:
                  wo = dr::select(active, wo_, Vector3f(0.f, 0.f, 1.f));
         Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
               mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
-              h = mu_prod / mu_sum; // = 1 / (2 v)
+              h = mu_prod / mu_sum; // = 1 / (2 v), MODEL.md Eq. 10b
 
         UnpolarizedSpectrum result(0.f);
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
-            UnpolarizedSpectrum rho = albedo(si, active), volume(0.f);
+            VolumeConstants k = volume_constants(si, active);
+            UnpolarizedSpectrum volume(0.f); // L1 + L2 + C
 
             if (lobes.single) {
-                /* 1 + g^2 - 2 g cos(Theta) with cos(Theta) = -dot(wi, wo),
+                /* L1, MODEL.md Eq. 9a:
+                   rho P(Theta) / (mu_i + mu_o) [1 - exp(-kappa d (1/mu_i + 1/mu_o))]
+                   with the Henyey-Greenstein P = (1 - g^2) / t^(3/2),
+                   t = 1 + g^2 - 2 g cos(Theta), cos(Theta) = -dot(wi, wo),
                    rewritten with non-negative terms so that it keeps its
                    precision when |g| -> 1:
-                   g >= 0: (1 - g)^2 + g |wi + wo|^2
-                   g <  0: (1 + g)^2 - g |wi - wo|^2 */
+                   g >= 0: t = (1 - g)^2 + g |wi + wo|^2
+                   g <  0: t = (1 + g)^2 - g |wi - wo|^2 */
                 Mask g_pos = m_g >= 0.f;
                 Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
                           dr::abs(m_g) * dr::select(g_pos, dr::squared_norm(wi + wo),
@@ -785,51 +945,70 @@ private:
                 Float factor = phase / mu_sum;
                 if (m_finite_thickness)
                     factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
-                                                (dr::rcp(mu_i) + dr::rcp(mu_o)));
-                volume += rho * factor;
+                                                        (dr::rcp(mu_i) + dr::rcp(mu_o)));
+                UnpolarizedSpectrum L1 = k.rho * factor;
+                volume += L1;
             }
 
-            if (lobes.multiple || lobes.coherent) {
-                UnpolarizedSpectrum tau = tau_o(si, active),
-                    rho2_3 = 3.f * dr::square(rho),
-                    c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f),
-                    c0 = dr::sqrt(c0_sq);
+            if (lobes.multiple) {
+                // L2, MODEL.md Eq. 9b (corrected):
+                // 3 rho^2 [s(c0) + mu_i mu_o / (mu_i + mu_o)] / ((1 + c0 mu_i) (1 + c0 mu_o))
+                UnpolarizedSpectrum L2 = k.rho2_3 * (k.s_c0 + h) /
+                                         ((1.f + k.c0 * mu_i) * (1.f + k.c0 * mu_o));
+                volume += L2;
+            }
 
-                if (lobes.multiple)
-                    volume += rho2_3 * (powder::s_func(c0, tau) + h) /
-                              ((1.f + c0 * mu_i) * (1.f + c0 * mu_o));
-
-                if (lobes.coherent) {
-                    UnpolarizedSpectrum k0_kappa = dr::TwoPi<ScalarFloat> / (lam * m_kappa);
-                    Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(),
-                          q = dr::sqrt(mu_prod);
-                    UnpolarizedSpectrum c = dr::sqrt(c0_sq + dr::square(k0_kappa) *
-                                                     (dx * dx + dy * dy)),
-                        u = k0_kappa * (mu_i - mu_o),
-                        // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
-                        w = c * q + mu_sum / (2.f * q),
-                        denom = dr::square(w) + dr::square(u * q);
-                    volume += rho2_3 * (h + powder::s_func(c, tau)) / denom;
-                }
+            if (lobes.coherent) {
+                /* C, MODEL.md Eq. 9c with Eq. 10:
+                   3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
+                   alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
+                   u = (k0 / kappa) (mu_i - mu_o) */
+                UnpolarizedSpectrum k0_kappa = k0_over_kappa(lam);
+                Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod);
+                UnpolarizedSpectrum c = dr::sqrt(k.c0_sq + dr::square(k0_kappa) *
+                                                 (dx * dx + dy * dy)),
+                    u = k0_kappa * (mu_i - mu_o),
+                    // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
+                    w = c * q + mu_sum / (2.f * q),
+                    denom = dr::square(w) + dr::square(u * q);
+                // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
+                // x = 2 c tau (powder::s_func), its series below x = 0.03
+                UnpolarizedSpectrum x = 2.f * c * k.tau;
+                auto small = x < 0.03f;
+                UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
+                                    xl = dr::select(small, 1.f, x),
+                    num = dr::select(small,
+                                     h + k.tau * powder::one_minus_exp_neg_over_x(xs),
+                                     h * xl + k.tau * powder::one_minus_exp_neg(xl)),
+                    den = dr::select(small, denom, xl * denom);
+                UnpolarizedSpectrum C = k.rho2_3 * num / den;
+                volume += C;
             }
             result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
         }
 
         if (lobes.surface) {
+            UnpolarizedSpectrum S;
             if (m_specular == SpecularModel::HarveyShack) {
+                /* S, MODEL.md Eq. 21-22 (Harvey-Shack, Gaussian PSD):
+                   A_s' (4 pi^2 / lam^4) (mu_i + mu_o)^2 pi l_c^2 exp(-pi^2 l_c^2 f_s^2),
+                   f_s = |wo_xy + wi_xy| / lam */
                 Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y();
                 UnpolarizedSpectrum inv_lam2 = dr::rcp(dr::square(lam)),
                     fs2 = (sx * sx + sy * sy) * inv_lam2;
                 Float lc2 = dr::square(m_lc);
-                result += (m_as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
-                           dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
-                          dr::square(inv_lam2) *
-                          dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
+                S = (m_as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
+                     dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
+                    dr::square(inv_lam2) *
+                    dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
             } else {
+                /* S, MODEL.md Eq. 20 (Gaussian in the angle theta_s to the mirror
+                   direction): A_s / (sigma sqrt(2 pi)) exp(-theta_s^2 / (2 sigma^2)) */
                 Float theta = mirror_angle(wi, wo);
-                result += m_as * dr::InvSqrtTwoPi<ScalarFloat> / m_sigma *
-                          dr::exp(-dr::square(theta) / (2.f * dr::square(m_sigma)));
+                S = m_as * dr::InvSqrtTwoPi<ScalarFloat> / m_sigma *
+                    dr::exp(-dr::square(theta) / (2.f * dr::square(m_sigma)));
             }
+            result += S;
         }
 
         return dr::select(active, result, 0.f);
@@ -966,31 +1145,32 @@ private:
         return (double) dr::slice(v);
     }
 
-    static void check_range(const char *name, double value, double lo, double hi,
-                            bool lo_closed, bool hi_closed) {
-        // Closed bounds are compared in single precision: the plugin stores
-        // floats, and so may the caller (e.g. sigma = pi/2 rounded up)
-        float vf = (float) value;
-        bool ok = !std::isnan(value) &&
-                  (lo_closed ? vf >= (float) lo : value > lo) &&
-                  (hi_closed ? vf <= (float) hi : value < hi);
-        if (!ok)
-            Throw("powder: property \"%s\" = %g is out of range; valid range is "
-                  "%s%g, %g%s", name, value, lo_closed ? "[" : "(", lo, hi,
-                  hi_closed ? "]" : ")");
+    /// The member holding a float parameter of the table powder_param::Table
+    static Float Powder::*member(powder_param::Id p) {
+        static constexpr Float Powder::*members[powder_param::Count] = {
+            &Powder::m_av, &Powder::m_g, &Powder::m_kappa, &Powder::m_tau_o,
+            &Powder::m_thickness, &Powder::m_as, &Powder::m_lc, &Powder::m_sigma,
+            &Powder::m_radius, &Powder::m_radius2, &Powder::m_fraction2
+        };
+        return members[p];
     }
 
-    static double read_scalar(const Properties &props, const char *name, double def,
-                              double lo, double hi, bool lo_closed, bool hi_closed) {
-        double value = props.get<double>(name, def);
-        check_range(name, value, lo, hi, lo_closed, hi_closed);
-        return value;
+    /// Whether a parameter enters the model as configured (and is range-checked)
+    bool in_use(powder_param::Id p) const {
+        switch (p) {
+            case powder_param::TauO: return m_tau_given;
+            case powder_param::Radius: return !m_albedo;
+            case powder_param::Radius2:
+            case powder_param::Fraction2: return !m_albedo && m_two_populations;
+            case powder_param::CorrelationLength:
+                return m_specular == SpecularModel::HarveyShack;
+            case powder_param::Sigma: return m_specular == SpecularModel::Gaussian;
+            default: return true;
+        }
     }
 
-    static Float read_float(const Properties &props, const char *name, double def,
-                            double lo, double hi, bool lo_closed, bool hi_closed) {
-        return Float((ScalarFloat) read_scalar(props, name, def, lo, hi, lo_closed, hi_closed));
-    }
+    /// Whether mi.traverse exposes a parameter: those in use
+    bool exposed(powder_param::Id p) const { return in_use(p); }
 
     void check_albedo() const {
         ScalarFloat max_value;
@@ -1121,6 +1301,11 @@ private:
     powder::OpticalTable m_optics;
     std::vector<double> m_table_wavelengths;       ///< nm
     std::vector<std::complex<double>> m_index;     ///< n + i k at those wavelengths
+    UnpolarizedSpectrum m_k0_kappa = 0.f; ///< RGB and mono: k0 / kappa per channel
+    VolumeConstants m_volume;       ///< when m_uniform_volume
+    bool m_uniform_volume = false;
+    /// RGB and mono: the entries of m_rho_table and m_tau_table, one per channel
+    UnpolarizedSpectrum m_rho_channels = 0.f, m_tau_channels = 0.f;
     FloatStorage m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
         m_qsca2_table;
     SpecularModel m_specular;
@@ -1133,8 +1318,9 @@ private:
 
     MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
                    m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_rho_mean, m_tau_mean,
-                   m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
-                   m_qsca2_table)
+                   m_rho_channels, m_tau_channels, m_k0_kappa, m_volume.rho, m_volume.rho2_3,
+                   m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau, m_rho_table,
+                   m_tau_table, m_qext_table, m_qsca_table, m_qext2_table, m_qsca2_table)
 };
 
 NAMESPACE_END(mitsuba)

@@ -36,7 +36,9 @@ template <typename T> T one_minus_exp_neg(const T &x) {
     T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
     T series = xs * (1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
                     (1.f - xs * .25f * (1.f - xs * .2f))));
-    return dr::select(small, series, 1.f - dr::exp(-xl));
+    // exp(-x) < 2^-24 for x > 17: 1 - exp(-x) rounds to 1, so clamping the
+    // argument changes no value and keeps exp away from denormal results
+    return dr::select(small, series, 1.f - dr::exp(-dr::minimum(xl, 20.f)));
 }
 
 /// (1 - exp(-x)) / x for x >= 0, equal to 1 at x = 0
@@ -45,7 +47,9 @@ template <typename T> T one_minus_exp_neg_over_x(const T &x) {
     T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
     T series = 1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
                (1.f - xs * .25f * (1.f - xs * .2f)));
-    return dr::select(small, series, (1.f - dr::exp(-xl)) / xl);
+    // exp(-x) < 2^-24 for x > 17: 1 - exp(-x) rounds to 1, so clamping the
+    // argument changes no value and keeps exp away from denormal results
+    return dr::select(small, series, (1.f - dr::exp(-dr::minimum(xl, 20.f))) / xl);
 }
 
 /// MODEL.md, Eq. 9b: s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
