@@ -373,6 +373,9 @@ public:
         if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
             check_albedo();
 
+        if constexpr (is_spectral_v<Spectrum>)
+            pack_grain_tables();
+
         // RGB and mono: the grain tables hold one value per channel; keep them as
         // opaque scalars, so that eval reads a broadcast value instead of gathering
         if constexpr (!is_spectral_v<Spectrum>) {
@@ -635,7 +638,7 @@ private:
         if (m_albedo)
             return m_albedo->eval(si, active);
         if constexpr (is_spectral_v<Spectrum>)
-            return lookup(m_rho_table, si, active);
+            return lookup_grains(si, active).first;
         else
             return m_rho_channels;
     }
@@ -645,9 +648,65 @@ private:
         if (m_tau_given)
             return UnpolarizedSpectrum(m_tau_o);
         if constexpr (is_spectral_v<Spectrum>)
-            return lookup(m_tau_table, si, active);
+            return lookup_grains(si, active).second;
         else
             return m_tau_channels;
+    }
+
+    /// Spectral variants: (rho, tau_o) per channel from m_packed, with the same
+    /// linear interpolation on the 1 nm grid as lookup(), but one packet gather
+    /// of 4 values per channel instead of 2 gathers per table (gathers dominate
+    /// the cost of eval on CPUs with slow vector gathers)
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    lookup_grains(const SurfaceInteraction3f &si, Mask active) const {
+        UnpolarizedSpectrum rho(0.f), tau(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum t = dr::clip((si.wavelengths - TableMin) * (1.f / TableStep),
+                                             0.f, (float) (TableSize - 1) - 1e-3f);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                UInt32 i0 = UInt32(dr::floor(t[c]));
+                Float w = t[c] - Float(i0);
+                auto v = dr::gather<dr::Array<Float, 4>>(m_packed, i0, active);
+                rho[c] = dr::lerp(v[0], v[1], w);
+                tau[c] = dr::lerp(v[2], v[3], w);
+            }
+        } else {
+            DRJIT_MARK_USED(si);
+            DRJIT_MARK_USED(active);
+        }
+        return { rho, tau };
+    }
+
+    /// Spectral variants: pack rho and tau_o as records (rho[i], rho[i + 1],
+    /// tau[i], tau[i + 1]) for lookup_grains (zeros for a table not in use);
+    /// differentiable through the gathers from m_rho_table
+    void pack_grain_tables() {
+        uint32_t n = (uint32_t) TableSize;
+        std::vector<uint32_t> src(4 * n), is_rho(4 * n);
+        for (uint32_t i = 0; i < n; ++i)
+            for (uint32_t j = 0; j < 4; ++j) {
+                src[4 * i + j] = std::min(i + (j & 1u), n - 1);
+                is_rho[4 * i + j] = j < 2;
+            }
+        if constexpr (dr::is_jit_v<Float>) {
+            using UInt32Storage = DynamicBuffer<UInt32>;
+            UInt32Storage idx = dr::load<UInt32Storage>(src.data(), src.size()),
+                          sel = dr::load<UInt32Storage>(is_rho.data(), is_rho.size());
+            FloatStorage rho = m_albedo ? dr::zeros<FloatStorage>(4 * n)
+                                        : dr::gather<FloatStorage>(m_rho_table, idx),
+                         tau = m_tau_given ? dr::zeros<FloatStorage>(4 * n)
+                                           : dr::gather<FloatStorage>(m_tau_table, idx);
+            m_packed = dr::select(sel != 0u, rho, tau);
+            dr::make_opaque(m_packed);
+        } else {
+            std::vector<ScalarFloat> packed(4 * n);
+            for (size_t k = 0; k < packed.size(); ++k) {
+                const FloatStorage &table = is_rho[k] ? m_rho_table : m_tau_table;
+                bool unused = is_rho[k] ? (bool) m_albedo : m_tau_given;
+                packed[k] = unused ? 0.f : (ScalarFloat) table[src[k]];
+            }
+            m_packed = dr::load<FloatStorage>(packed.data(), packed.size());
+        }
     }
 
     /// A grain table at the channel wavelengths: linear interpolation on the
@@ -904,6 +963,12 @@ private:
     VolumeConstants volume_constants(const SurfaceInteraction3f &si, Mask active) const {
         if (m_uniform_volume)
             return m_volume;
+        if constexpr (is_spectral_v<Spectrum>) {
+            if (!m_albedo && !m_tau_given) { // both from one packet gather per channel
+                auto [rho, tau] = lookup_grains(si, active);
+                return volume_constants(rho, tau);
+            }
+        }
         return volume_constants(albedo(si, active), tau_o(si, active));
     }
 
@@ -1302,6 +1367,7 @@ private:
     std::vector<double> m_table_wavelengths;       ///< nm
     std::vector<std::complex<double>> m_index;     ///< n + i k at those wavelengths
     UnpolarizedSpectrum m_k0_kappa = 0.f; ///< RGB and mono: k0 / kappa per channel
+    FloatStorage m_packed;          ///< spectral: grain tables for lookup_grains
     VolumeConstants m_volume;       ///< when m_uniform_volume
     bool m_uniform_volume = false;
     /// RGB and mono: the entries of m_rho_table and m_tau_table, one per channel
@@ -1318,7 +1384,7 @@ private:
 
     MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
                    m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_rho_mean, m_tau_mean,
-                   m_rho_channels, m_tau_channels, m_k0_kappa, m_volume.rho, m_volume.rho2_3,
+                   m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho, m_volume.rho2_3,
                    m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau, m_rho_table,
                    m_tau_table, m_qext_table, m_qsca_table, m_qext2_table, m_qsca2_table)
 };
