@@ -7,13 +7,14 @@
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
 
+#include <nanothread/nanothread.h>
+
 #include "powder_lobes.h"
 #include "powder_optics.h"
 
 #include <cmath>
 #include <exception>
 #include <limits>
-#include <thread>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -804,98 +805,43 @@ private:
     /// Mie efficiencies, rho = Q_sca / Q_ext (two populations: MODEL.md), and,
     /// when gradients are tracked on a grain parameter, rho's first derivatives
     /// with respect to the radii and fraction, attached to the AD graph as tangents.
-    /// The wavelengths are spread over threads.
+    /// The table (powder_optics.h) spreads the wavelengths over Dr.Jit's threads.
     void update_mie_tables() {
-        double r1 = value_of(m_radius), r2 = value_of(m_radius2), f2 = value_of(m_fraction2);
+        powder::Grains grains{ value_of(m_radius), value_of(m_radius2),
+                               value_of(m_fraction2), m_two_populations };
         bool tangents = false;
         if constexpr (dr::is_diff_v<Float>)
             tangents = dr::grad_enabled(m_radius) ||
                        (m_two_populations &&
                         (dr::grad_enabled(m_radius2) || dr::grad_enabled(m_fraction2)));
-        size_t n = m_table_wavelengths.size();
+        auto parallel_for = [](size_t n, auto &&row) {
+            if (n < 32) { // RGB and mono: too few rows to share
+                for (size_t i = 0; i < n; ++i)
+                    row(i);
+                return;
+            }
+            dr::parallel_for(dr::blocked_range<size_t>(0, n, 8),
+                             [&](const dr::blocked_range<size_t> &range) {
+                                 for (size_t i = range.begin(); i != range.end(); ++i)
+                                     row(i);
+                             });
+        };
+        std::vector<powder::AlbedoRow> rows = powder::albedo_table(
+            grains, m_table_wavelengths, m_index, tangents, parallel_for);
+
+        size_t n = rows.size();
         std::vector<ScalarFloat> rho(n), d_r1(n), d_r2(n), d_f2(n), qe1(n), qs1(n), qe2(n),
             qs2(n);
-        const double h = 1e-6; // relative step of the forward differences (double)
-
-        // (Q_ext, Q_sca, dQ_ext/dr, dQ_sca/dr) of one population at one wavelength
-        auto efficiencies = [&](double r, double wl_nm, const std::complex<double> &m,
-                                const char *name) {
-            double x = 2.0 * M_PI * r / (wl_nm * 1e-3);
-            // (a relative slack of 1e-6 absorbs the float rounding of r)
-            if (!(x >= 1e-3 * (1.0 - 1e-6) && x <= 200.0 * (1.0 + 1e-6)))
-                powder::fail("powder: property \"", name, "\" = ", r, " um gives the size "
-                             "parameter 2 pi r / lambda = ", x, " at ", wl_nm, " nm; valid "
-                             "range is [1e-3, 200] (radius ", 1e-3 * wl_nm * 1e-3 / (2.0 * M_PI),
-                             "-", 200.0 * wl_nm * 1e-3 / (2.0 * M_PI), " um at this wavelength)");
-            powder::MieEfficiencies q = powder::mie_efficiencies(m, x);
-            if (!(q.q_ext > 0.0))
-                powder::fail("powder: grains of index ", m.real(), " + ", m.imag(),
-                             "i do not interact with light (Q_ext = 0)");
-            std::array<double, 4> out{ q.q_ext, q.q_sca, 0.0, 0.0 };
-            if (tangents) {
-                // dQ/dr = dQ/dx * x / r, by a forward difference in double precision
-                // (one extra series; truncation error ~1e-5 relative, far below what
-                // gradient-based fitting needs)
-                powder::MieEfficiencies qp = powder::mie_efficiencies(m, x * (1.0 + h));
-                double s = 1.0 / (h * r);
-                out[2] = (qp.q_ext - q.q_ext) * s;
-                out[3] = (qp.q_sca - q.q_sca) * s;
-            }
-            return out;
-        };
-
-        auto row = [&](size_t i) {
-            double wl = m_table_wavelengths[i];
-            auto a = efficiencies(r1, wl, m_index[i], "radius");
-            double w1 = (1.0 - f2) / r1;
-            double ns = w1 * a[1], ne = w1 * a[0];
-            double dns_r1 = (1.0 - f2) * (a[3] / r1 - a[1] / (r1 * r1)),
-                   dne_r1 = (1.0 - f2) * (a[2] / r1 - a[0] / (r1 * r1));
-            double dns_r2 = 0.0, dne_r2 = 0.0, dns_f = -a[1] / r1, dne_f = -a[0] / r1;
-            qe1[i] = (ScalarFloat) a[0];
-            qs1[i] = (ScalarFloat) a[1];
-            if (m_two_populations) {
-                auto b = efficiencies(r2, wl, m_index[i], "radius2");
-                double w2 = f2 / r2;
-                ns += w2 * b[1];
-                ne += w2 * b[0];
-                dns_r2 = f2 * (b[3] / r2 - b[1] / (r2 * r2));
-                dne_r2 = f2 * (b[2] / r2 - b[0] / (r2 * r2));
-                dns_f += b[1] / r2;
-                dne_f += b[0] / r2;
-                qe2[i] = (ScalarFloat) b[0];
-                qs2[i] = (ScalarFloat) b[1];
-            }
-            double r = ns / ne;
-            rho[i] = (ScalarFloat) r;
-            d_r1[i] = (ScalarFloat) ((dns_r1 - r * dne_r1) / ne);
-            d_r2[i] = (ScalarFloat) ((dns_r2 - r * dne_r2) / ne);
-            d_f2[i] = (ScalarFloat) ((dns_f - r * dne_f) / ne);
-        };
-
-        // Rows are independent: split them over threads when there are many
-        size_t workers = n < 32 ? 1 : std::max(1u, std::min(8u,
-                                               std::thread::hardware_concurrency()));
-        if (workers == 1) {
-            for (size_t i = 0; i < n; ++i)
-                row(i);
-        } else {
-            std::vector<std::thread> pool;
-            std::vector<std::exception_ptr> errors(workers);
-            for (size_t w = 0; w < workers; ++w)
-                pool.emplace_back([&, w] {
-                    try {
-                        for (size_t i = w; i < n; i += workers)
-                            row(i);
-                    } catch (...) {
-                        errors[w] = std::current_exception();
-                    }
-                });
-            for (auto &t : pool)
-                t.join();
-            for (auto &e : errors)
-                if (e)
-                    std::rethrow_exception(e);
+        for (size_t i = 0; i < n; ++i) {
+            const powder::AlbedoRow &r = rows[i];
+            rho[i] = (ScalarFloat) r.rho;
+            d_r1[i] = (ScalarFloat) r.d_r1;
+            d_r2[i] = (ScalarFloat) r.d_r2;
+            d_f2[i] = (ScalarFloat) r.d_f2;
+            qe1[i] = (ScalarFloat) r.q_ext1;
+            qs1[i] = (ScalarFloat) r.q_sca1;
+            qe2[i] = (ScalarFloat) r.q_ext2;
+            qs2[i] = (ScalarFloat) r.q_sca2;
         }
 
         auto load = [](const std::vector<ScalarFloat> &v) {
@@ -904,12 +850,12 @@ private:
         m_rho_table = load(rho);
         if constexpr (dr::is_diff_v<Float>) {
             if (tangents) {
-            // value unchanged (the differences are zero), first derivatives exact
-            m_rho_table = m_rho_table + load(d_r1) * (m_radius - dr::detach(m_radius));
-            if (m_two_populations)
-                m_rho_table = m_rho_table +
-                              load(d_r2) * (m_radius2 - dr::detach(m_radius2)) +
-                              load(d_f2) * (m_fraction2 - dr::detach(m_fraction2));
+                // value unchanged (the differences are zero), first derivatives exact
+                m_rho_table = m_rho_table + load(d_r1) * (m_radius - dr::detach(m_radius));
+                if (m_two_populations)
+                    m_rho_table = m_rho_table +
+                                  load(d_r2) * (m_radius2 - dr::detach(m_radius2)) +
+                                  load(d_f2) * (m_fraction2 - dr::detach(m_fraction2));
             }
         }
         m_qext_table = load(qe1);
