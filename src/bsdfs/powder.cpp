@@ -68,17 +68,30 @@ enum Id : size_t {
 };
 
 inline constexpr Spec Table[Count] = {
-    { "amplitude_volume",   "-",    1.0,     "1.0",                  { 0.0, Inf, true, false }, true },
-    { "g",                  "-",    0.0,     "0.0",                  { -1.0, 1.0, false, false }, true },
-    { "extinction",         "1/um", 1.0,     "1.0",                  { 0.0, Inf, false, false }, true },
-    { "tau_o",              "-",    2.0 / 3, "from Fresnel of Re(eta)", { 0.0, Inf, true, false }, true },
-    { "thickness",          "um",   Inf,     "infinite",             { 0.0, Inf, true, true }, true },
-    { "amplitude_surface",  "um^2", 0.0,     "0.0",                  { 0.0, Inf, true, false }, true },
-    { "correlation_length", "um",   1.0,     "1.0",                  { 0.0, Inf, false, false }, true },
-    { "sigma",              "rad",  0.1,     "0.1",                  { 0.0, 0.5 * M_PI, false, true }, true },
-    { "radius",             "um",   0.017,   "0.017",                { 0.0, Inf, false, false }, true },
-    { "radius2",            "um",   1.0,     "none (one population)", { 0.0, Inf, false, false }, true },
-    { "fraction2",          "-",    0.0,     "none (one population)", { 0.0, 1.0, true, true }, true },
+    // name                 unit    default  default as documented
+    //     range {lo, hi, lo closed, hi closed}, fittable
+    { "amplitude_volume",   "-",    1.0,     "1.0",
+          { 0.0, Inf, true, false }, true },
+    { "g",                  "-",    0.0,     "0.0",
+          { -1.0, 1.0, false, false }, true },
+    { "extinction",         "1/um", 1.0,     "1.0",
+          { 0.0, Inf, false, false }, true },
+    { "tau_o",              "-",    2.0 / 3, "from Fresnel of Re(eta)",
+          { 0.0, Inf, true, false }, true },
+    { "thickness",          "um",   Inf,     "infinite",
+          { 0.0, Inf, true, true }, true },
+    { "amplitude_surface",  "um^2", 0.0,     "0.0",
+          { 0.0, Inf, true, false }, true },
+    { "correlation_length", "um",   1.0,     "1.0",
+          { 0.0, Inf, false, false }, true },
+    { "sigma",              "rad",  0.1,     "0.1",
+          { 0.0, 0.5 * M_PI, false, true }, true },
+    { "radius",             "um",   0.017,   "0.017",
+          { 0.0, Inf, false, false }, true },
+    { "radius2",            "um",   1.0,     "none (one population)",
+          { 0.0, Inf, false, false }, true },
+    { "fraction2",          "-",    0.0,     "none (one population)",
+          { 0.0, 1.0, true, true }, true },
 };
 
 } // namespace powder_param
@@ -239,7 +252,8 @@ public:
     Powder(const Properties &props) : Base(props) {
         m_tau_given = props.has_property("tau_o");
         m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
-        if (m_two_populations && !(props.has_property("radius2") && props.has_property("fraction2")))
+        if (m_two_populations &&
+            !(props.has_property("radius2") && props.has_property("fraction2")))
             Throw("powder: a second grain population needs both \"radius2\" and "
                   "\"fraction2\"; got only \"%s\"",
                   props.has_property("radius2") ? "radius2" : "fraction2");
@@ -560,7 +574,8 @@ public:
                 << "  fraction2 = " << string::indent(m_fraction2) << "," << std::endl;
         oss << "  optical constants = " << m_optics.source << "," << std::endl
             << "  tau_o = " << (m_tau_given ? string::indent(m_tau_o)
-                                            : std::string("from Fresnel (Re eta)")) << "," << std::endl
+                                            : std::string("from Fresnel (Re eta)"))
+            << "," << std::endl
             << "  thickness = " << string::indent(m_thickness) << " [um]," << std::endl
             << "  specular = " << (m_specular == SpecularModel::HarveyShack
                                        ? "harvey_shack" : "gaussian") << "," << std::endl
@@ -952,8 +967,8 @@ private:
                 Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
                           dr::abs(m_g) * dr::select(g_pos, dr::squared_norm(wi + wo),
                                                     dr::squared_norm(wi - wo)),
-                      phase = (1.f - dr::square(m_g)) / (t * dr::sqrt(t));
-                Float factor = phase / mu_sum;
+                      // P(Theta) / (mu_i + mu_o) as one division
+                      factor = (1.f - dr::square(m_g)) / (t * dr::sqrt(t) * mu_sum);
                 if (m_finite_thickness)
                     factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
                                                         (dr::rcp(mu_i) + dr::rcp(mu_o)));
@@ -988,9 +1003,10 @@ private:
                 auto small = x < 0.03f;
                 UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
                                     xl = dr::select(small, 1.f, x),
-                    num = dr::select(small,
-                                     h + k.tau * powder::one_minus_exp_neg_over_x(xs),
-                                     h * xl + k.tau * powder::one_minus_exp_neg(xl)),
+                    series = powder::one_minus_exp_neg_over_x_series(xs),
+                    // (the clamp as in powder::one_minus_exp_neg: no value changes)
+                    one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
+                    num = dr::select(small, h + k.tau * series, h * xl + k.tau * one_minus_e),
                     den = dr::select(small, denom, xl * denom);
                 UnpolarizedSpectrum C = k.rho2_3 * num / den;
                 volume += C;
@@ -1330,9 +1346,10 @@ private:
 
     MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
                    m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_rho_mean, m_tau_mean,
-                   m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho, m_volume.rho2_3,
-                   m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau, m_rho_table,
-                   m_tau_table, m_qext_table, m_qsca_table, m_qext2_table, m_qsca2_table)
+                   m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho,
+                   m_volume.rho2_3, m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau,
+                   m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
+                   m_qsca2_table)
 };
 
 NAMESPACE_END(mitsuba)
