@@ -422,6 +422,17 @@ public:
             }
         }
 
+        // In C, x = 2 c tau_o >= 2 c0 tau_o. Where that bound is at least 18 in every
+        // channel, 1 - exp(-x) rounds to 1 in single precision for every direction
+        // (exp(-18) < 2^-25), so eval can skip the exponential: same values
+        m_coherent_saturated = false;
+        if (m_uniform_volume) {
+            UnpolarizedSpectrum x0 = 2.f * dr::detach(m_volume.c0) * dr::detach(m_volume.tau);
+            m_coherent_saturated = true;
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                m_coherent_saturated &= value_of(x0[c]) >= 18.0;
+        }
+
         // Detached means, used only to weight the sampling lobes
         m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
                               : Float(dr::mean(dr::detach(m_rho_table)));
@@ -999,16 +1010,21 @@ private:
                     denom = dr::square(w) + dr::square(u * q);
                 // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
                 // x = 2 c tau (powder::s_func), its series below x = 0.03
-                UnpolarizedSpectrum x = 2.f * c * k.tau;
-                auto small = x < 0.03f;
-                UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
-                                    xl = dr::select(small, 1.f, x),
-                    series = powder::one_minus_exp_neg_over_x_series(xs),
-                    // (the clamp as in powder::one_minus_exp_neg: no value changes)
-                    one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
-                    num = dr::select(small, h + k.tau * series, h * xl + k.tau * one_minus_e),
-                    den = dr::select(small, denom, xl * denom);
-                UnpolarizedSpectrum C = k.rho2_3 * num / den;
+                UnpolarizedSpectrum x = 2.f * c * k.tau, C;
+                if (m_coherent_saturated) { // x >= 18 everywhere: 1 - exp(-x) == 1
+                    C = k.rho2_3 * (h * x + k.tau) / (x * denom);
+                } else {
+                    auto small = x < 0.03f;
+                    UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
+                                        xl = dr::select(small, 1.f, x),
+                        series = powder::one_minus_exp_neg_over_x_series(xs),
+                        // (the clamp as in powder::one_minus_exp_neg: no value changes)
+                        one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
+                        num = dr::select(small, h + k.tau * series,
+                                         h * xl + k.tau * one_minus_e),
+                        den = dr::select(small, denom, xl * denom);
+                    C = k.rho2_3 * num / den;
+                }
                 volume += C;
             }
             result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
@@ -1332,6 +1348,7 @@ private:
     FloatStorage m_packed;          ///< spectral: grain tables for lookup_grains
     VolumeConstants m_volume;       ///< when m_uniform_volume
     bool m_uniform_volume = false;
+    bool m_coherent_saturated = false; ///< 2 c0 tau_o >= 18 in every channel
     /// RGB and mono: the entries of m_rho_table and m_tau_table, one per channel
     UnpolarizedSpectrum m_rho_channels = 0.f, m_tau_channels = 0.f;
     FloatStorage m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,

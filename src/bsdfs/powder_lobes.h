@@ -40,8 +40,8 @@ template <typename T> T one_minus_exp_neg_over_x_series(const T &x) {
 template <typename T> T one_minus_exp_neg(const T &x) {
     dr::mask_t<T> small = x < 0.03f;
     T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
-    // exp(-x) < 2^-24 for x > 17: 1 - exp(-x) rounds to 1, so clamping the
-    // argument changes no value and keeps exp away from denormal results
+    // exp(-x) < 2^-25 for x > 17.4: 1 - exp(-x) rounds to 1, so clamping the
+    // argument at 20 changes no value and keeps exp away from denormal results
     return dr::select(small, xs * one_minus_exp_neg_over_x_series(xs),
                       1.f - dr::exp(-dr::minimum(xl, 20.f)));
 }
