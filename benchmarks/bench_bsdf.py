@@ -3,9 +3,11 @@ Mitsuba's diffuse, roughplastic and principled.
 
 Per variant and BSDF: eval, sample and eval_pdf calls per second, and eval + backward
 (gradient of the sum of the values with respect to one parameter). JIT variants: one call over
-N random direction pairs (kernel compiled in a warm-up call, then the median of the repeats;
-the time includes Python tracing of the call). scalar_rgb: a Python loop of single calls, so
-its numbers include the binding overhead of each call (the same for every BSDF).
+N random direction pairs (kernel compiled in a warm-up call, then the median of the repeats,
+the BSDFs timed in turn within each repeat; the time includes Python tracing of the call);
+eval cost against principled: the median of the per-repeat ratios. scalar_rgb: a Python loop
+of single calls, so its numbers include the binding overhead of each call (the same for every
+BSDF).
 Prints a table, writes benchmarks/results/bsdf.json and bsdf.png.
 Run:  python benchmarks/bench_bsdf.py [--quick]
 """
@@ -18,7 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, print_table, pyplot, save, timeit, use_variant
+from _common import arg_parser, print_table, pyplot, save, use_variant
 
 BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
 BSDFS = {
@@ -48,7 +50,8 @@ def directions(n: int, seed: int) -> np.ndarray:
     return np.stack([s * np.cos(phi), s * np.sin(phi), mu], axis=1).astype(np.float32)
 
 
-def bench_jit(name: str, props: dict, n: int, repeat: int, backward: bool = True) -> dict:
+def jit_calls(name: str, props: dict, n: int, backward: bool = True) -> dict:
+    """{operation: a function making one call over n random direction pairs}."""
     bsdf = mi.load_dict(props)
     wi, wo = directions(n, 1), directions(n, 2)
     rng = np.random.default_rng(3)
@@ -84,10 +87,39 @@ def bench_jit(name: str, props: dict, n: int, repeat: int, backward: bool = True
         dr.eval(dr.grad(params[key]))
         dr.disable_grad(params[key])
 
-    out = {"eval_backward": None}
-    ops = [("eval", run_eval), ("sample", run_sample), ("eval_pdf", run_eval_pdf)]
-    for op, fn in ops + ([("eval_backward", run_backward)] if backward else []):
-        out[op] = n / timeit(fn, repeat) / 1e6
+    calls = {"eval": run_eval, "sample": run_sample, "eval_pdf": run_eval_pdf}
+    if backward:
+        calls["eval_backward"] = run_backward
+    return calls
+
+
+def bench_jit(bsdfs: dict, n: int, repeat: int, backward: bool = True) -> dict:
+    """{bsdf: {operation: M calls/s}}, and with a "principled" entry the eval cost against
+    it. The BSDFs are timed in turn within each repeat (after a warm-up call each that
+    compiles the kernels), so that a change of machine load affects them alike; a cost ratio
+    is the median of the per-repeat ratios."""
+    calls = {name: jit_calls(name, props, n, backward) for name, props in bsdfs.items()}
+    times = {name: {op: [] for op in c} for name, c in calls.items()}
+    for c in calls.values():
+        for fn in c.values():
+            fn()
+            dr.sync_thread()
+    for _ in range(repeat):
+        for op in ("eval", "sample", "eval_pdf", "eval_backward"):
+            for name, c in calls.items():
+                if op not in c:
+                    continue
+                t = time.perf_counter()
+                c[op]()
+                dr.sync_thread()
+                times[name][op].append(time.perf_counter() - t)
+    out = {}
+    for name, t in times.items():
+        out[name] = {"eval_backward": None,
+                     **{op: n / float(np.median(v)) / 1e6 for op, v in t.items()}}
+        if "principled" in times:
+            ref = np.array(times["principled"]["eval"])
+            out[name]["eval_cost_vs_principled"] = float(np.median(np.array(t["eval"]) / ref))
     return out
 
 
@@ -122,19 +154,20 @@ def bench_scalar(props: dict, n: int) -> dict:
 def main() -> None:
     parser = arg_parser(__doc__)
     args = parser.parse_args()
-    n_jit = 1024 if args.quick else 1 << 21
+    n_jit = 1024 if args.quick else 1 << 22
     n_scalar = 200 if args.quick else 20_000
     repeat = 2 if args.quick else 9
     variants = ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
     rows = []
     for variant in variants:
         use_variant(variant)
-        for name, props in BSDFS.items():
-            if variant.startswith("scalar"):
-                r = bench_scalar(props, n_scalar)
-            else:
-                r = bench_jit(name, props, n_jit, repeat)
-            rows.append({"variant": variant, "bsdf": name, **r})
+        if variant.startswith("scalar"):
+            results = {name: bench_scalar(props, n_scalar) for name, props in BSDFS.items()}
+            for r in results.values():
+                r["eval_cost_vs_principled"] = results["principled"]["eval"] / r["eval"]
+        else:
+            results = bench_jit(BSDFS, n_jit, repeat)
+        rows += [{"variant": variant, "bsdf": name, **r} for name, r in results.items()]
         diffuse = next(r for r in rows if r["variant"] == variant and r["bsdf"] == "diffuse")
         for r in rows:
             if r["variant"] == variant:
@@ -147,7 +180,8 @@ def main() -> None:
                        ("eval_pdf", "eval_pdf M/s", ".3f"),
                        ("eval_backward", "eval+bwd M/s", ".3f"),
                        ("eval_cost_vs_diffuse", "eval cost/diffuse", ".2f"),
-                       ("sample_cost_vs_diffuse", "sample cost/diffuse", ".2f")])
+                       ("sample_cost_vs_diffuse", "sample cost/diffuse", ".2f"),
+                       ("eval_cost_vs_principled", "eval cost/principled", ".2f")])
     save(args.out, "bsdf", rows, args.quick, jit_pairs=n_jit, scalar_calls=n_scalar)
     plt = pyplot()
     fig, axes = plt.subplots(1, len(variants), figsize=(4 * len(variants), 3.8), sharey=False)

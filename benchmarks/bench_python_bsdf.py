@@ -94,8 +94,8 @@ def main() -> None:
             if scalar:
                 r = bench_scalar(props, n_scalar)
             else:
-                r = bench_jit("python" if impl.startswith("Python") else "powder", props,
-                              n_jit, repeat, backward=False)
+                name = "python" if impl.startswith("Python") else "powder"
+                r = bench_jit({name: props}, n_jit, repeat, backward=False)[name]
             r.pop("eval_backward", None)
             first, later = render_seconds(furnace_scene(props["type"], res, spp), repeat)
             rows.append({"variant": variant, "implementation": impl, **r,

@@ -43,7 +43,8 @@ def tables(results: Path) -> dict[str, str]:
         ("sample", "sample M/s", ".1f"), ("eval_pdf", "eval_pdf M/s", ".1f"),
         ("eval_backward", "eval + backward M/s", ".1f"),
         ("eval_cost_vs_diffuse", "eval cost / diffuse", ".2f"),
-        ("sample_cost_vs_diffuse", "sample cost / diffuse", ".2f")])
+        ("sample_cost_vs_diffuse", "sample cost / diffuse", ".2f"),
+        ("eval_cost_vs_principled", "eval cost / principled", ".2f")])
     py = load("python_bsdf")
     out["python_bsdf"] = md_table(py["rows"], [
         ("variant", "variant", "s"), ("implementation", "implementation", "s"),

@@ -7,17 +7,94 @@
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
 
+#include <nanothread/nanothread.h>
+
+#include "powder_lobes.h"
 #include "powder_optics.h"
 
 #include <cmath>
 #include <exception>
 #include <limits>
-#include <thread>
 #include <sstream>
 #include <string>
 #include <vector>
 
 NAMESPACE_BEGIN(mitsuba)
+
+namespace powder_param {
+
+/// Valid values of a parameter: an interval with open or closed ends
+struct Range {
+    double lo, hi;
+    bool lo_closed, hi_closed;
+
+    /// Closed ends are compared in single precision: the plugin stores floats,
+    /// and so may the caller (e.g. sigma = pi/2 rounded up)
+    bool contains(double v) const {
+        float vf = (float) v;
+        return !std::isnan(v) && (lo_closed ? vf >= (float) lo : v > lo) &&
+               (hi_closed ? vf <= (float) hi : v < hi);
+    }
+};
+
+/// Throw the project's error for a value outside its range
+inline void check_range(const char *name, double value, const Range &r) {
+    if (!r.contains(value))
+        Throw("powder: property \"%s\" = %g is out of range; valid range is %s%g, %g%s", name,
+              value, r.lo_closed ? "[" : "(", r.lo, r.hi, r.hi_closed ? "]" : ")");
+}
+
+constexpr double Inf = std::numeric_limits<double>::infinity();
+
+/**
+ * The float parameters of the model (MODEL.md, "Parameters"). One row each drives
+ * reading the property (default, range), the range check after an edit through
+ * mi.traverse (parameters_changed), the traversal key and whether it is
+ * differentiable; tests/test_params_doc.py checks that the doc comment above the
+ * class and docs/powder.md list the same names, defaults and ranges.
+ */
+struct Spec {
+    const char *name;
+    const char *unit;     ///< "-" when dimensionless
+    double def;           ///< default value when the property is absent
+    const char *def_doc;  ///< the default as documented
+    Range range;
+    bool fittable;        ///< differentiable and exposed by mi.traverse
+};
+
+enum Id : size_t {
+    AmplitudeVolume, G, Extinction, TauO, Thickness, AmplitudeSurface, CorrelationLength,
+    Sigma, Radius, Radius2, Fraction2, Count
+};
+
+inline constexpr Spec Table[Count] = {
+    // name                 unit    default  default as documented
+    //     range {lo, hi, lo closed, hi closed}, fittable
+    { "amplitude_volume",   "-",    1.0,     "1.0",
+          { 0.0, Inf, true, false }, true },
+    { "g",                  "-",    0.0,     "0.0",
+          { -1.0, 1.0, false, false }, true },
+    { "extinction",         "1/um", 1.0,     "1.0",
+          { 0.0, Inf, false, false }, true },
+    { "tau_o",              "-",    2.0 / 3, "from Fresnel of Re(eta)",
+          { 0.0, Inf, true, false }, true },
+    { "thickness",          "um",   Inf,     "infinite",
+          { 0.0, Inf, true, true }, true },
+    { "amplitude_surface",  "um^2", 0.0,     "0.0",
+          { 0.0, Inf, true, false }, true },
+    { "correlation_length", "um",   1.0,     "1.0",
+          { 0.0, Inf, false, false }, true },
+    { "sigma",              "rad",  0.1,     "0.1",
+          { 0.0, 0.5 * M_PI, false, true }, true },
+    { "radius",             "um",   0.017,   "0.017",
+          { 0.0, Inf, false, false }, true },
+    { "radius2",            "um",   1.0,     "none (one population)",
+          { 0.0, Inf, false, false }, true },
+    { "fraction2",          "-",    0.0,     "none (one population)",
+          { 0.0, 1.0, true, true }, true },
+};
+
+} // namespace powder_param
 
 /**!
 
@@ -27,6 +104,40 @@ Dry powder (:monosp:`powder`)
 -----------------------------
 
 .. pluginparameters::
+
+ * - albedo
+   - |spectrum| or |texture|
+   - Single-scattering albedo rho of the grains, values in [0, 1] (Default: none:
+     from Mie theory for the grains, see ``radius``)
+   - |exposed|, |differentiable|
+
+ * - radius
+   - |float|
+   - Grain radius r in micrometres, without ``albedo`` (Default: 0.017, range (0, inf);
+     size parameter 2 pi r / lambda in [1e-3, 200])
+   - |exposed|, |differentiable|
+
+ * - radius2
+   - |float|
+   - Radius of a second grain population in micrometres; needs ``fraction2``
+     (Default: none (one population), range (0, inf))
+   - |exposed|, |differentiable|
+
+ * - fraction2
+   - |float|
+   - Volume fraction of the second population; needs ``radius2``
+     (Default: none (one population), range [0, 1])
+   - |exposed|, |differentiable|
+
+ * - material
+   - |string|
+   - Grain material for Mie theory and tau_o: ``hematite``, ``magnetite`` or a
+     refractiveindex.info YAML file (Default: ``hematite``)
+
+ * - eta, k
+   - |float| or |spectrum|
+   - Optical constants n and k of the grain material, instead of ``material``; both or
+     neither (Default: from ``material``, range eta > 0, k >= 0)
 
  * - amplitude_volume
    - |float|
@@ -43,14 +154,10 @@ Dry powder (:monosp:`powder`)
    - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range (0, inf))
    - |exposed|, |differentiable|
 
- * - albedo
-   - |spectrum| or |texture|
-   - Single-scattering albedo rho of the grains (required for now, values in [0, 1])
-   - |exposed|, |differentiable|
-
  * - tau_o
    - |float|
-   - Extrapolation ratio of the diffusion boundary (Default: 2/3, range [0, inf))
+   - Extrapolation ratio of the diffusion boundary; exposed only when given
+     (Default: from Fresnel of Re(eta), range [0, inf))
    - |exposed|, |differentiable|
 
  * - thickness
@@ -60,12 +167,14 @@ Dry powder (:monosp:`powder`)
 
  * - amplitude_surface
    - |float|
-   - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian) (Default: 0.0)
+   - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian)
+     (Default: 0.0, range [0, inf))
    - |exposed|, |differentiable|
 
  * - correlation_length
    - |float|
-   - Correlation length l_c of the surface in micrometres, Harvey-Shack only (Default: 1.0)
+   - Correlation length l_c of the surface in micrometres, Harvey-Shack only
+     (Default: 1.0, range (0, inf))
    - |exposed|, |differentiable|
 
  * - specular
@@ -91,12 +200,16 @@ Dry powder (:monosp:`powder`)
 
  * - wavelength
    - |float|
-   - Wavelength in nm at which mono variants evaluate the model (Default: 700)
+   - Wavelength in nm at which mono variants evaluate the model (Default: 700,
+     range (0, inf))
 
  * - rgb_wavelengths
    - |string|
    - Wavelengths in nm of the R, G, B channels in RGB variants
      (Default: ``611.3, 549.1, 464.3``)
+
+The float parameters and their defaults and ranges are those of the table
+``powder_param::Table`` above (tests/test_params_doc.py compares the two).
 
 The dry-powder reflectance model of Gerardin, Martinetto and Holzschuch
 (JOSA A 40(9), 2023), Eq. 23, with the conventions and corrections of the
@@ -137,17 +250,23 @@ public:
     static constexpr float TableMin = 360.f, TableStep = 1.f;
 
     Powder(const Properties &props) : Base(props) {
-        constexpr double Inf = std::numeric_limits<double>::infinity();
-
-        m_av        = read_float(props, "amplitude_volume", 1.0, 0.0, Inf, true, false);
-        m_g         = read_float(props, "g", 0.0, -1.0, 1.0, false, false);
-        m_kappa     = read_float(props, "extinction", 1.0, 0.0, Inf, false, false);
         m_tau_given = props.has_property("tau_o");
-        m_tau_o     = read_float(props, "tau_o", 2.0 / 3.0, 0.0, Inf, true, false);
-        m_thickness = read_float(props, "thickness", Inf, 0.0, Inf, true, true);
-        m_as        = read_float(props, "amplitude_surface", 0.0, 0.0, Inf, true, false);
-        m_lc        = read_float(props, "correlation_length", 1.0, 0.0, Inf, false, false);
-        m_sigma     = read_float(props, "sigma", 0.1, 0.0, 0.5 * M_PI, false, true);
+        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        if (m_two_populations &&
+            !(props.has_property("radius2") && props.has_property("fraction2")))
+            Throw("powder: a second grain population needs both \"radius2\" and "
+                  "\"fraction2\"; got only \"%s\"",
+                  props.has_property("radius2") ? "radius2" : "fraction2");
+        // The float parameters, from the table powder_param::Table
+        for (size_t i = 0; i < powder_param::Count; ++i) {
+            const powder_param::Spec &spec = powder_param::Table[i];
+            double value = spec.def;
+            if (props.has_property(spec.name)) {
+                value = props.get<double>(spec.name);
+                powder_param::check_range(spec.name, value, spec.range);
+            }
+            this->*member((powder_param::Id) i) = Float((ScalarFloat) value);
+        }
 
         std::string specular = props.get<std::string>("specular", "harvey_shack");
         if (specular == "harvey_shack")
@@ -169,8 +288,10 @@ public:
             Throw("powder: property \"sampling\" = \"%s\" is not valid; valid "
                   "values are \"lobes\" and \"cosine\"", sampling);
 
-        m_wavelength = (ScalarFloat) read_scalar(props, "wavelength", 700.0, 0.0,
-                                                 Inf, false, false);
+        double wavelength = props.get<double>("wavelength", 700.0);
+        powder_param::check_range("wavelength", wavelength,
+                                  { 0.0, powder_param::Inf, false, false });
+        m_wavelength = (ScalarFloat) wavelength;
         if (props.has_property("rgb_wavelengths") &&
             props.type("rgb_wavelengths") == Properties::Type::Vector) {
             // Python list / XML <vector>
@@ -183,20 +304,7 @@ public:
                 props.get<std::string>("rgb_wavelengths", "611.3, 549.1, 464.3"));
         }
 
-        // Grains: radius (and a second population), optical constants
-        m_radius = read_float(props, "radius", 0.017, 0.0, Inf, false, false);
-        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
-        if (m_two_populations) {
-            if (!props.has_property("radius2") || !props.has_property("fraction2"))
-                Throw("powder: a second grain population needs both \"radius2\" and "
-                      "\"fraction2\"; got only \"%s\"",
-                      props.has_property("radius2") ? "radius2" : "fraction2");
-            m_radius2 = read_float(props, "radius2", 0.1, 0.0, Inf, false, false);
-            m_fraction2 = read_float(props, "fraction2", 0.0, 0.0, 1.0, true, true);
-        } else {
-            m_radius2 = Float(1.f);
-            m_fraction2 = Float(0.f);
-        }
+        // Grains: optical constants of the material
         m_optics = load_optics(props);
 
         if (props.has_property("albedo")) {
@@ -245,44 +353,23 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
-        cb->put("amplitude_volume", m_av, ParamFlags::Differentiable);
-        cb->put("g", m_g, ParamFlags::Differentiable);
-        cb->put("extinction", m_kappa, ParamFlags::Differentiable);
-        if (m_albedo) {
+        for (size_t i = 0; i < powder_param::Count; ++i)
+            if (exposed((powder_param::Id) i))
+                cb->put(powder_param::Table[i].name, this->*member((powder_param::Id) i),
+                        (uint32_t) (powder_param::Table[i].fittable
+                                        ? ParamFlags::Differentiable
+                                        : ParamFlags::NonDifferentiable));
+        if (m_albedo)
             cb->put("albedo", m_albedo, ParamFlags::Differentiable);
-        } else {
-            cb->put("radius", m_radius, ParamFlags::Differentiable);
-            if (m_two_populations) {
-                cb->put("radius2", m_radius2, ParamFlags::Differentiable);
-                cb->put("fraction2", m_fraction2, ParamFlags::Differentiable);
-            }
-        }
-        if (m_tau_given)
-            cb->put("tau_o", m_tau_o, ParamFlags::Differentiable);
-        cb->put("thickness", m_thickness, ParamFlags::Differentiable);
-        cb->put("amplitude_surface", m_as, ParamFlags::Differentiable);
-        if (m_specular == SpecularModel::HarveyShack)
-            cb->put("correlation_length", m_lc, ParamFlags::Differentiable);
-        else
-            cb->put("sigma", m_sigma, ParamFlags::Differentiable);
     }
 
     void parameters_changed(const std::vector<std::string> &keys = {}) override {
-        constexpr double Inf = std::numeric_limits<double>::infinity();
         // Parameters edited through mi.traverse() are checked like properties
-        check_range("amplitude_volume", value_of(m_av), 0.0, Inf, true, false);
-        check_range("g", value_of(m_g), -1.0, 1.0, false, false);
-        check_range("extinction", value_of(m_kappa), 0.0, Inf, false, false);
-        check_range("tau_o", value_of(m_tau_o), 0.0, Inf, true, false);
-        check_range("thickness", value_of(m_thickness), 0.0, Inf, true, true);
-        check_range("amplitude_surface", value_of(m_as), 0.0, Inf, true, false);
-        check_range("correlation_length", value_of(m_lc), 0.0, Inf, false, false);
-        check_range("sigma", value_of(m_sigma), 0.0, 0.5 * M_PI, false, true);
-        check_range("radius", value_of(m_radius), 0.0, Inf, false, false);
-        if (m_two_populations) {
-            check_range("radius2", value_of(m_radius2), 0.0, Inf, false, false);
-            check_range("fraction2", value_of(m_fraction2), 0.0, 1.0, true, true);
-        }
+        for (size_t i = 0; i < powder_param::Count; ++i)
+            if (in_use((powder_param::Id) i))
+                powder_param::check_range(powder_param::Table[i].name,
+                                          value_of(this->*member((powder_param::Id) i)),
+                                          powder_param::Table[i].range);
 
         // An infinite layer needs no thickness factor (and 0 * inf would
         // poison the gradients of the extinction)
@@ -290,8 +377,8 @@ public:
 
         // Opaque first: the Mie tangents below must not bake the radius in as a literal
         // (that would compile a new kernel for every radius an optimiser tries)
-        dr::make_opaque(m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma,
-                        m_radius, m_radius2, m_fraction2);
+        for (size_t i = 0; i < powder_param::Count; ++i)
+            dr::make_opaque(this->*member((powder_param::Id) i));
 
         bool grains_changed = keys.empty() || string::contains(keys, "radius") ||
                               string::contains(keys, "radius2") ||
@@ -300,6 +387,51 @@ public:
             update_mie_tables();
         if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
             check_albedo();
+
+        if constexpr (is_spectral_v<Spectrum>)
+            pack_grain_tables();
+
+        // RGB and mono: the grain tables hold one value per channel; keep them as
+        // opaque scalars, so that eval reads a broadcast value instead of gathering
+        if constexpr (!is_spectral_v<Spectrum>) {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                if (!m_albedo)
+                    m_rho_channels[c] = dr::gather<Float>(m_rho_table, UInt32((uint32_t) c));
+                if (!m_tau_given)
+                    m_tau_channels[c] = dr::gather<Float>(m_tau_table, UInt32((uint32_t) c));
+            }
+            dr::make_opaque(m_rho_channels, m_tau_channels);
+        }
+
+        if constexpr (!is_spectral_v<Spectrum>) {
+            m_k0_kappa = dr::TwoPi<ScalarFloat> /
+                         (wavelengths_um(dr::zeros<SurfaceInteraction3f>(1)) * m_kappa);
+            dr::make_opaque(m_k0_kappa);
+        }
+
+        // The volume constants are the same for every interaction when the albedo
+        // and tau_o are: precompute them (opaque, so no recompilation per value)
+        m_uniform_volume = false;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            m_uniform_volume = !m_albedo || !m_albedo->is_spatially_varying();
+            if (m_uniform_volume) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
+                m_volume = volume_constants(albedo(si, true), tau_o(si, true));
+                dr::make_opaque(m_volume.rho, m_volume.rho2_3, m_volume.c0_sq, m_volume.c0,
+                                m_volume.s_c0, m_volume.tau);
+            }
+        }
+
+        // In C, x = 2 c tau_o >= 2 c0 tau_o. Where that bound is at least 18 in every
+        // channel, 1 - exp(-x) rounds to 1 in single precision for every direction
+        // (exp(-18) < 2^-25), so eval can skip the exponential: same values
+        m_coherent_saturated = false;
+        if (m_uniform_volume) {
+            UnpolarizedSpectrum x0 = 2.f * dr::detach(m_volume.c0) * dr::detach(m_volume.tau);
+            m_coherent_saturated = true;
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                m_coherent_saturated &= value_of(x0[c]) >= 18.0;
+        }
 
         // Detached means, used only to weight the sampling lobes
         m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
@@ -338,20 +470,32 @@ public:
 
         Vector3f wo = warp::square_to_cosine_hemisphere(sample2);
 
+        // sample1 rescaled within the picked lobe's interval: a third uniform number
+        Float u3 = dr::select(pick_coherent, sample1 / dr::maximum(w.coherent, 1e-30f),
+                              (sample1 - w.coherent) / dr::maximum(w.surface, 1e-30f));
+        u3 = dr::clip(u3, 0.f, dr::OneMinusEpsilon<Float>);
         if (lobes.coherent)
-            dr::masked(wo, pick_coherent) = sample_coherent(si.wi, w.width_coherent, sample2);
+            dr::masked(wo, pick_coherent) =
+                sample_coherent(si.wi, w.width_coherent, sample2, u3);
         if (lobes.surface)
-            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2);
+            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2, u3);
 
         auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
 
         bs.wo = wo;
         bs.pdf = pdf;
         bs.eta = 1.f;
-        bs.sampled_type = dr::select(pick_diffuse, UInt32(+BSDFFlags::DiffuseReflection),
+        // The cosine lobe samples the volume terms; when they are not enabled it
+        // is only a fallback of the glossy lobes, reported as the first of them
+        bool volume = lobes.single || lobes.multiple;
+        uint32_t cosine_type = volume ? +BSDFFlags::DiffuseReflection
+                                      : +BSDFFlags::GlossyReflection,
+                 cosine_component = volume ? m_comp_volume
+                                   : lobes.coherent ? m_comp_coherent : m_comp_surface;
+        bs.sampled_type = dr::select(pick_diffuse, UInt32(cosine_type),
                                      UInt32(+BSDFFlags::GlossyReflection));
         bs.sampled_component = dr::select(
-            pick_diffuse, UInt32(m_comp_volume),
+            pick_diffuse, UInt32(cosine_component),
             dr::select(pick_coherent, UInt32(m_comp_coherent), UInt32(m_comp_surface)));
 
         Mask valid = active && pdf > 0.f;
@@ -441,7 +585,8 @@ public:
                 << "  fraction2 = " << string::indent(m_fraction2) << "," << std::endl;
         oss << "  optical constants = " << m_optics.source << "," << std::endl
             << "  tau_o = " << (m_tau_given ? string::indent(m_tau_o)
-                                            : std::string("from Fresnel (Re eta)")) << "," << std::endl
+                                            : std::string("from Fresnel (Re eta)"))
+            << "," << std::endl
             << "  thickness = " << string::indent(m_thickness) << " [um]," << std::endl
             << "  specular = " << (m_specular == SpecularModel::HarveyShack
                                        ? "harvey_shack" : "gaussian") << "," << std::endl
@@ -483,31 +628,6 @@ private:
                  m_surface && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_surface) };
     }
 
-    // ---------------------------------------------------- numerical helpers
-
-    /// 1 - exp(-x) for x >= 0, accurate for small x (Dr.Jit has no expm1)
-    template <typename T> static T one_minus_exp_neg(const T &x) {
-        dr::mask_t<T> small = x < 0.03f;
-        T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
-        T series = xs * (1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
-                        (1.f - xs * .25f * (1.f - xs * .2f))));
-        return dr::select(small, series, 1.f - dr::exp(-xl));
-    }
-
-    /// (1 - exp(-x)) / x for x >= 0, equal to 1 at x = 0
-    template <typename T> static T one_minus_exp_neg_over_x(const T &x) {
-        dr::mask_t<T> small = x < 0.03f;
-        T xs = dr::select(small, x, 0.f), xl = dr::select(small, 1.f, x);
-        T series = 1.f - xs * .5f * (1.f - xs * (1.f / 3.f) *
-                   (1.f - xs * .25f * (1.f - xs * .2f)));
-        return dr::select(small, series, (1.f - dr::exp(-xl)) / xl);
-    }
-
-    /// s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
-    template <typename T> static T s_func(const T &c, const T &tau) {
-        return tau * one_minus_exp_neg_over_x(2.f * c * tau);
-    }
-
     // ------------------------------------------------------- wavelengths
 
     /// Evaluation wavelengths in micrometres, one per channel
@@ -542,12 +662,78 @@ private:
 
     /// Single-scattering albedo per channel: the `albedo` texture or the Mie table
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
-        return m_albedo ? m_albedo->eval(si, active) : lookup(m_rho_table, si, active);
+        if (m_albedo)
+            return m_albedo->eval(si, active);
+        if constexpr (is_spectral_v<Spectrum>)
+            return lookup_grains(si, active).first;
+        else
+            return m_rho_channels;
     }
 
     /// Extrapolation ratio per channel: the `tau_o` property or the Fresnel table
     UnpolarizedSpectrum tau_o(const SurfaceInteraction3f &si, Mask active) const {
-        return m_tau_given ? UnpolarizedSpectrum(m_tau_o) : lookup(m_tau_table, si, active);
+        if (m_tau_given)
+            return UnpolarizedSpectrum(m_tau_o);
+        if constexpr (is_spectral_v<Spectrum>)
+            return lookup_grains(si, active).second;
+        else
+            return m_tau_channels;
+    }
+
+    /// Spectral variants: (rho, tau_o) per channel from m_packed, with the same
+    /// linear interpolation on the 1 nm grid as lookup(), but one packet gather
+    /// of 4 values per channel instead of 2 gathers per table (gathers dominate
+    /// the cost of eval on CPUs with slow vector gathers)
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    lookup_grains(const SurfaceInteraction3f &si, Mask active) const {
+        UnpolarizedSpectrum rho(0.f), tau(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum t = dr::clip((si.wavelengths - TableMin) * (1.f / TableStep),
+                                             0.f, (float) (TableSize - 1) - 1e-3f);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                UInt32 i0 = UInt32(dr::floor(t[c]));
+                Float w = t[c] - Float(i0);
+                auto v = dr::gather<dr::Array<Float, 4>>(m_packed, i0, active);
+                rho[c] = dr::lerp(v[0], v[1], w);
+                tau[c] = dr::lerp(v[2], v[3], w);
+            }
+        } else {
+            DRJIT_MARK_USED(si);
+            DRJIT_MARK_USED(active);
+        }
+        return { rho, tau };
+    }
+
+    /// Spectral variants: pack rho and tau_o as records (rho[i], rho[i + 1],
+    /// tau[i], tau[i + 1]) for lookup_grains (zeros for a table not in use);
+    /// differentiable through the gathers from m_rho_table
+    void pack_grain_tables() {
+        uint32_t n = (uint32_t) TableSize;
+        std::vector<uint32_t> src(4 * n), is_rho(4 * n);
+        for (uint32_t i = 0; i < n; ++i)
+            for (uint32_t j = 0; j < 4; ++j) {
+                src[4 * i + j] = std::min(i + (j & 1u), n - 1);
+                is_rho[4 * i + j] = j < 2;
+            }
+        if constexpr (dr::is_jit_v<Float>) {
+            using UInt32Storage = DynamicBuffer<UInt32>;
+            UInt32Storage idx = dr::load<UInt32Storage>(src.data(), src.size()),
+                          sel = dr::load<UInt32Storage>(is_rho.data(), is_rho.size());
+            FloatStorage rho = m_albedo ? dr::zeros<FloatStorage>(4 * n)
+                                        : dr::gather<FloatStorage>(m_rho_table, idx),
+                         tau = m_tau_given ? dr::zeros<FloatStorage>(4 * n)
+                                           : dr::gather<FloatStorage>(m_tau_table, idx);
+            m_packed = dr::select(sel != 0u, rho, tau);
+            dr::make_opaque(m_packed);
+        } else {
+            std::vector<ScalarFloat> packed(4 * n);
+            for (size_t k = 0; k < packed.size(); ++k) {
+                const FloatStorage &table = is_rho[k] ? m_rho_table : m_tau_table;
+                bool unused = is_rho[k] ? (bool) m_albedo : m_tau_given;
+                packed[k] = unused ? 0.f : (ScalarFloat) table[src[k]];
+            }
+            m_packed = dr::load<FloatStorage>(packed.data(), packed.size());
+        }
     }
 
     /// A grain table at the channel wavelengths: linear interpolation on the
@@ -584,9 +770,9 @@ private:
             auto [wl_e, v_e] = read_spectrum(props, "eta");
             auto [wl_k, v_k] = read_spectrum(props, "k");
             for (double v : v_e)
-                check_range("eta", v, 0.0, std::numeric_limits<double>::infinity(), false, false);
+                powder_param::check_range("eta", v, { 0.0, powder_param::Inf, false, false });
             for (double v : v_k)
-                check_range("k", v, 0.0, std::numeric_limits<double>::infinity(), true, false);
+                powder_param::check_range("k", v, { 0.0, powder_param::Inf, true, false });
             return powder::table_from_pairs(wl_e, v_e, wl_k, v_k);
         }
         std::string material = props.get<std::string>("material", "hematite");
@@ -645,98 +831,43 @@ private:
     /// Mie efficiencies, rho = Q_sca / Q_ext (two populations: MODEL.md), and,
     /// when gradients are tracked on a grain parameter, rho's first derivatives
     /// with respect to the radii and fraction, attached to the AD graph as tangents.
-    /// The wavelengths are spread over threads.
+    /// The table (powder_optics.h) spreads the wavelengths over Dr.Jit's threads.
     void update_mie_tables() {
-        double r1 = value_of(m_radius), r2 = value_of(m_radius2), f2 = value_of(m_fraction2);
+        powder::Grains grains{ value_of(m_radius), value_of(m_radius2),
+                               value_of(m_fraction2), m_two_populations };
         bool tangents = false;
         if constexpr (dr::is_diff_v<Float>)
             tangents = dr::grad_enabled(m_radius) ||
                        (m_two_populations &&
                         (dr::grad_enabled(m_radius2) || dr::grad_enabled(m_fraction2)));
-        size_t n = m_table_wavelengths.size();
+        auto parallel_for = [](size_t n, auto &&row) {
+            if (n < 32) { // RGB and mono: too few rows to share
+                for (size_t i = 0; i < n; ++i)
+                    row(i);
+                return;
+            }
+            dr::parallel_for(dr::blocked_range<size_t>(0, n, 8),
+                             [&](const dr::blocked_range<size_t> &range) {
+                                 for (size_t i = range.begin(); i != range.end(); ++i)
+                                     row(i);
+                             });
+        };
+        std::vector<powder::AlbedoRow> rows = powder::albedo_table(
+            grains, m_table_wavelengths, m_index, tangents, parallel_for);
+
+        size_t n = rows.size();
         std::vector<ScalarFloat> rho(n), d_r1(n), d_r2(n), d_f2(n), qe1(n), qs1(n), qe2(n),
             qs2(n);
-        const double h = 1e-6; // relative step of the forward differences (double)
-
-        // (Q_ext, Q_sca, dQ_ext/dr, dQ_sca/dr) of one population at one wavelength
-        auto efficiencies = [&](double r, double wl_nm, const std::complex<double> &m,
-                                const char *name) {
-            double x = 2.0 * M_PI * r / (wl_nm * 1e-3);
-            // (a relative slack of 1e-6 absorbs the float rounding of r)
-            if (!(x >= 1e-3 * (1.0 - 1e-6) && x <= 200.0 * (1.0 + 1e-6)))
-                powder::fail("powder: property \"", name, "\" = ", r, " um gives the size "
-                             "parameter 2 pi r / lambda = ", x, " at ", wl_nm, " nm; valid "
-                             "range is [1e-3, 200] (radius ", 1e-3 * wl_nm * 1e-3 / (2.0 * M_PI),
-                             "-", 200.0 * wl_nm * 1e-3 / (2.0 * M_PI), " um at this wavelength)");
-            powder::MieEfficiencies q = powder::mie_efficiencies(m, x);
-            if (!(q.q_ext > 0.0))
-                powder::fail("powder: grains of index ", m.real(), " + ", m.imag(),
-                             "i do not interact with light (Q_ext = 0)");
-            std::array<double, 4> out{ q.q_ext, q.q_sca, 0.0, 0.0 };
-            if (tangents) {
-                // dQ/dr = dQ/dx * x / r, by a forward difference in double precision
-                // (one extra series; truncation error ~1e-5 relative, far below what
-                // gradient-based fitting needs)
-                powder::MieEfficiencies qp = powder::mie_efficiencies(m, x * (1.0 + h));
-                double s = 1.0 / (h * r);
-                out[2] = (qp.q_ext - q.q_ext) * s;
-                out[3] = (qp.q_sca - q.q_sca) * s;
-            }
-            return out;
-        };
-
-        auto row = [&](size_t i) {
-            double wl = m_table_wavelengths[i];
-            auto a = efficiencies(r1, wl, m_index[i], "radius");
-            double w1 = (1.0 - f2) / r1;
-            double ns = w1 * a[1], ne = w1 * a[0];
-            double dns_r1 = (1.0 - f2) * (a[3] / r1 - a[1] / (r1 * r1)),
-                   dne_r1 = (1.0 - f2) * (a[2] / r1 - a[0] / (r1 * r1));
-            double dns_r2 = 0.0, dne_r2 = 0.0, dns_f = -a[1] / r1, dne_f = -a[0] / r1;
-            qe1[i] = (ScalarFloat) a[0];
-            qs1[i] = (ScalarFloat) a[1];
-            if (m_two_populations) {
-                auto b = efficiencies(r2, wl, m_index[i], "radius2");
-                double w2 = f2 / r2;
-                ns += w2 * b[1];
-                ne += w2 * b[0];
-                dns_r2 = f2 * (b[3] / r2 - b[1] / (r2 * r2));
-                dne_r2 = f2 * (b[2] / r2 - b[0] / (r2 * r2));
-                dns_f += b[1] / r2;
-                dne_f += b[0] / r2;
-                qe2[i] = (ScalarFloat) b[0];
-                qs2[i] = (ScalarFloat) b[1];
-            }
-            double r = ns / ne;
-            rho[i] = (ScalarFloat) r;
-            d_r1[i] = (ScalarFloat) ((dns_r1 - r * dne_r1) / ne);
-            d_r2[i] = (ScalarFloat) ((dns_r2 - r * dne_r2) / ne);
-            d_f2[i] = (ScalarFloat) ((dns_f - r * dne_f) / ne);
-        };
-
-        // Rows are independent: split them over threads when there are many
-        size_t workers = n < 32 ? 1 : std::max(1u, std::min(8u,
-                                               std::thread::hardware_concurrency()));
-        if (workers == 1) {
-            for (size_t i = 0; i < n; ++i)
-                row(i);
-        } else {
-            std::vector<std::thread> pool;
-            std::vector<std::exception_ptr> errors(workers);
-            for (size_t w = 0; w < workers; ++w)
-                pool.emplace_back([&, w] {
-                    try {
-                        for (size_t i = w; i < n; i += workers)
-                            row(i);
-                    } catch (...) {
-                        errors[w] = std::current_exception();
-                    }
-                });
-            for (auto &t : pool)
-                t.join();
-            for (auto &e : errors)
-                if (e)
-                    std::rethrow_exception(e);
+        for (size_t i = 0; i < n; ++i) {
+            const powder::AlbedoRow &r = rows[i];
+            rho[i] = (ScalarFloat) r.rho;
+            d_r1[i] = (ScalarFloat) r.d_r1;
+            d_r2[i] = (ScalarFloat) r.d_r2;
+            d_f2[i] = (ScalarFloat) r.d_f2;
+            qe1[i] = (ScalarFloat) r.q_ext1;
+            qs1[i] = (ScalarFloat) r.q_sca1;
+            qe2[i] = (ScalarFloat) r.q_ext2;
+            qs2[i] = (ScalarFloat) r.q_sca2;
         }
 
         auto load = [](const std::vector<ScalarFloat> &v) {
@@ -745,12 +876,12 @@ private:
         m_rho_table = load(rho);
         if constexpr (dr::is_diff_v<Float>) {
             if (tangents) {
-            // value unchanged (the differences are zero), first derivatives exact
-            m_rho_table = m_rho_table + load(d_r1) * (m_radius - dr::detach(m_radius));
-            if (m_two_populations)
-                m_rho_table = m_rho_table +
-                              load(d_r2) * (m_radius2 - dr::detach(m_radius2)) +
-                              load(d_f2) * (m_fraction2 - dr::detach(m_fraction2));
+                // value unchanged (the differences are zero), first derivatives exact
+                m_rho_table = m_rho_table + load(d_r1) * (m_radius - dr::detach(m_radius));
+                if (m_two_populations)
+                    m_rho_table = m_rho_table +
+                                  load(d_r2) * (m_radius2 - dr::detach(m_radius2)) +
+                                  load(d_f2) * (m_fraction2 - dr::detach(m_fraction2));
             }
         }
         m_qext_table = load(qe1);
@@ -764,10 +895,60 @@ private:
 
     // ---------------------------------------------------------- the model
 
+    /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), MODEL.md Eq. 10;
+    /// precomputed in RGB and mono variants, where lambda is fixed
+    UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &lam) const {
+        if constexpr (is_spectral_v<Spectrum>)
+            return dr::TwoPi<ScalarFloat> / (lam * m_kappa);
+        else {
+            DRJIT_MARK_USED(lam);
+            return m_k0_kappa;
+        }
+    }
+
+    /// Per-channel values of the volume terms that depend on the grains only
+    /// (rho, g, tau_o), not on the directions
+    struct VolumeConstants {
+        UnpolarizedSpectrum rho,
+            rho2_3, ///< 3 rho^2, the prefactor of L2 and C
+            c0_sq,  ///< c0^2 = 3 (1 - rho) (1 - rho g), MODEL.md Eq. 10e with alpha = 0
+            c0,
+            s_c0,   ///< s(c0), MODEL.md Eq. 9b
+            tau;    ///< tau_o
+    };
+
+    VolumeConstants volume_constants(const UnpolarizedSpectrum &rho,
+                                     const UnpolarizedSpectrum &tau) const {
+        VolumeConstants k;
+        k.rho = rho;
+        k.tau = tau;
+        k.rho2_3 = 3.f * dr::square(rho);
+        k.c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f);
+        k.c0 = dr::sqrt(k.c0_sq);
+        k.s_c0 = powder::s_func(k.c0, tau);
+        return k;
+    }
+
+    /// The volume constants at an interaction: precomputed in parameters_changed
+    /// when they are the same for every interaction (RGB and mono variants with
+    /// a Mie albedo or a spatially uniform albedo texture)
+    VolumeConstants volume_constants(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_uniform_volume)
+            return m_volume;
+        if constexpr (is_spectral_v<Spectrum>) {
+            if (!m_albedo && !m_tau_given) { // both from one packet gather per channel
+                auto [rho, tau] = lookup_grains(si, active);
+                return volume_constants(rho, tau);
+            }
+        }
+        return volume_constants(albedo(si, active), tau_o(si, active));
+    }
+
     /**
-     * The BRDF (without the cosine factor) of MODEL.md for the enabled lobes.
-     * Directions outside `active` are replaced by the normal so that no
-     * infinity reaches the gradients of masked-out lanes.
+     * The BRDF (without the cosine factor) of MODEL.md, Eq. 23, for the enabled
+     * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Directions outside `active` are
+     * replaced by the normal so that no infinity reaches the gradients of
+     * masked-out lanes.
      */
     UnpolarizedSpectrum eval_brdf(const Lobes &lobes, const SurfaceInteraction3f &si,
                                   const Vector3f &wo_, const UnpolarizedSpectrum &lam,
@@ -776,19 +957,23 @@ private:
                  wo = dr::select(active, wo_, Vector3f(0.f, 0.f, 1.f));
         Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
               mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
-              h = mu_prod / mu_sum; // = 1 / (2 v)
+              h = mu_prod / mu_sum; // = 1 / (2 v), MODEL.md Eq. 10b
 
         UnpolarizedSpectrum result(0.f);
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
-            UnpolarizedSpectrum rho = albedo(si, active), volume(0.f);
+            VolumeConstants k = volume_constants(si, active);
+            UnpolarizedSpectrum volume(0.f); // L1 + L2 + C
 
             if (lobes.single) {
-                /* 1 + g^2 - 2 g cos(Theta) with cos(Theta) = -dot(wi, wo),
+                /* L1, MODEL.md Eq. 9a:
+                   rho P(Theta) / (mu_i + mu_o) [1 - exp(-kappa d (1/mu_i + 1/mu_o))]
+                   with the Henyey-Greenstein P = (1 - g^2) / t^(3/2),
+                   t = 1 + g^2 - 2 g cos(Theta), cos(Theta) = -dot(wi, wo),
                    rewritten with non-negative terms so that it keeps its
                    precision when |g| -> 1:
-                   g >= 0: (1 - g)^2 + g |wi + wo|^2
-                   g <  0: (1 + g)^2 - g |wi - wo|^2
+                   g >= 0: t = (1 - g)^2 + g |wi + wo|^2
+                   g <  0: t = (1 + g)^2 - g |wi - wo|^2
                    (|g| written as a select: the derivative of dr::abs at
                    g = 0 is 0, which gave a wrong d/dg at the default g = 0) */
                 Mask g_pos = m_g >= 0.f;
@@ -796,55 +981,80 @@ private:
                           dr::select(g_pos, m_g, -m_g) *
                               dr::select(g_pos, dr::squared_norm(wi + wo),
                                          dr::squared_norm(wi - wo)),
-                      phase = (1.f - dr::square(m_g)) / (t * dr::sqrt(t));
-                Float factor = phase / mu_sum;
+                      // P(Theta) / (mu_i + mu_o) as one division
+                      factor = (1.f - dr::square(m_g)) / (t * dr::sqrt(t) * mu_sum);
                 if (m_finite_thickness)
-                    factor *= one_minus_exp_neg(m_kappa * m_thickness *
-                                                (dr::rcp(mu_i) + dr::rcp(mu_o)));
-                volume += rho * factor;
+                    factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
+                                                        (dr::rcp(mu_i) + dr::rcp(mu_o)));
+                UnpolarizedSpectrum L1 = k.rho * factor;
+                volume += L1;
             }
 
-            if (lobes.multiple || lobes.coherent) {
-                UnpolarizedSpectrum tau = tau_o(si, active),
-                    rho2_3 = 3.f * dr::square(rho),
-                    c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f),
-                    c0 = dr::sqrt(c0_sq);
+            if (lobes.multiple) {
+                // L2, MODEL.md Eq. 9b (corrected):
+                // 3 rho^2 [s(c0) + mu_i mu_o / (mu_i + mu_o)] / ((1 + c0 mu_i) (1 + c0 mu_o))
+                UnpolarizedSpectrum L2 = k.rho2_3 * (k.s_c0 + h) /
+                                         ((1.f + k.c0 * mu_i) * (1.f + k.c0 * mu_o));
+                volume += L2;
+            }
 
-                if (lobes.multiple)
-                    volume += rho2_3 * (s_func(c0, tau) + h) /
-                              ((1.f + c0 * mu_i) * (1.f + c0 * mu_o));
-
-                if (lobes.coherent) {
-                    UnpolarizedSpectrum k0_kappa = dr::TwoPi<ScalarFloat> / (lam * m_kappa);
-                    Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(),
-                          q = dr::sqrt(mu_prod);
-                    UnpolarizedSpectrum c = dr::sqrt(c0_sq + dr::square(k0_kappa) *
-                                                     (dx * dx + dy * dy)),
-                        u = k0_kappa * (mu_i - mu_o),
-                        // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
-                        w = c * q + mu_sum / (2.f * q),
-                        denom = dr::square(w) + dr::square(u * q);
-                    volume += rho2_3 * (h + s_func(c, tau)) / denom;
+            if (lobes.coherent) {
+                /* C, MODEL.md Eq. 9c with Eq. 10:
+                   3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
+                   alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
+                   u = (k0 / kappa) (mu_i - mu_o) */
+                UnpolarizedSpectrum k0_kappa = k0_over_kappa(lam);
+                Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod);
+                UnpolarizedSpectrum c = dr::sqrt(k.c0_sq + dr::square(k0_kappa) *
+                                                 (dx * dx + dy * dy)),
+                    u = k0_kappa * (mu_i - mu_o),
+                    // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
+                    w = c * q + mu_sum / (2.f * q),
+                    denom = dr::square(w) + dr::square(u * q);
+                // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
+                // x = 2 c tau (powder::s_func), its series below x = 0.03
+                UnpolarizedSpectrum x = 2.f * c * k.tau, C;
+                if (m_coherent_saturated) { // x >= 18 everywhere: 1 - exp(-x) == 1
+                    C = k.rho2_3 * (h * x + k.tau) / (x * denom);
+                } else {
+                    auto small = x < 0.03f;
+                    UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
+                                        xl = dr::select(small, 1.f, x),
+                        series = powder::one_minus_exp_neg_over_x_series(xs),
+                        // (the clamp as in powder::one_minus_exp_neg: no value changes)
+                        one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
+                        num = dr::select(small, h + k.tau * series,
+                                         h * xl + k.tau * one_minus_e),
+                        den = dr::select(small, denom, xl * denom);
+                    C = k.rho2_3 * num / den;
                 }
+                volume += C;
             }
             result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
         }
 
         if (lobes.surface) {
+            UnpolarizedSpectrum S;
             if (m_specular == SpecularModel::HarveyShack) {
+                /* S, MODEL.md Eq. 21-22 (Harvey-Shack, Gaussian PSD):
+                   A_s' (4 pi^2 / lam^4) (mu_i + mu_o)^2 pi l_c^2 exp(-pi^2 l_c^2 f_s^2),
+                   f_s = |wo_xy + wi_xy| / lam */
                 Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y();
                 UnpolarizedSpectrum inv_lam2 = dr::rcp(dr::square(lam)),
                     fs2 = (sx * sx + sy * sy) * inv_lam2;
                 Float lc2 = dr::square(m_lc);
-                result += (m_as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
-                           dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
-                          dr::square(inv_lam2) *
-                          dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
+                S = (m_as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
+                     dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
+                    dr::square(inv_lam2) *
+                    dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
             } else {
+                /* S, MODEL.md Eq. 20 (Gaussian in the angle theta_s to the mirror
+                   direction): A_s / (sigma sqrt(2 pi)) exp(-theta_s^2 / (2 sigma^2)) */
                 Float theta = mirror_angle(wi, wo);
-                result += m_as * dr::InvSqrtTwoPi<ScalarFloat> / m_sigma *
-                          dr::exp(-dr::square(theta) / (2.f * dr::square(m_sigma)));
+                S = m_as * dr::InvSqrtTwoPi<ScalarFloat> / m_sigma *
+                    dr::exp(-dr::square(theta) / (2.f * dr::square(m_sigma)));
             }
+            result += S;
         }
 
         return dr::select(active, result, 0.f);
@@ -852,8 +1062,7 @@ private:
 
     /// Angle between wo and the mirror direction of wi (stable near 0)
     static Float mirror_angle(const Vector3f &wi, const Vector3f &wo) {
-        Vector3f r(-wi.x(), -wi.y(), wi.z());
-        return 2.f * dr::atan2(dr::norm(wo - r), dr::norm(wo + r));
+        return powder::angle_between(wo, Vector3f(-wi.x(), -wi.y(), wi.z()));
     }
 
     // ------------------------------------------------------------ sampling
@@ -868,7 +1077,7 @@ private:
         // Rough estimates of each term's directional albedo (integral of
         // f cos over the hemisphere = integral of f over the projected disc)
         Float c0 = dr::safe_sqrt(3.f * (1.f - rho) * (1.f - rho * g));
-        Float s0 = tau * one_minus_exp_neg_over_x(2.f * c0 * tau);
+        Float s0 = powder::s_func(c0, tau);
         Float e_diffuse = 0.f, e_coherent = 0.f, e_surface = 0.f;
         if (lobes.single)
             e_diffuse += av * .25f * rho / (mu + .5f);
@@ -878,8 +1087,7 @@ private:
 
         // Width of the cone in the projected plane: C falls off where
         // alpha ~ c0 + v, i.e. |wo_xy - wi_xy| ~ (kappa / k0) (c0 + 1 / mu_i).
-        // Broader cones are left to the cosine lobe (a projected lobe centred
-        // near the rim would lose half its samples off the disc).
+        // Broader cones are left to the cosine lobe.
         Float width_c = dr::minimum(
             .5f * kappa * lam_mean * dr::InvTwoPi<ScalarFloat> * (c0 + dr::rcp(mu)), .25f);
         if (lobes.coherent) {
@@ -891,9 +1099,13 @@ private:
         if (m_specular == SpecularModel::HarveyShack) {
             width_s = lam_mean * dr::InvPi<ScalarFloat> * dr::InvSqrtTwo<ScalarFloat> /
                       dr::detach(m_lc);
+            // S integrated over the projected plane, times the share of a centred
+            // Gaussian of this width inside the unit disc (small l_c: wide lobes
+            // carry little energy onto the hemisphere)
             if (lobes.surface)
                 e_surface = 16.f * dr::square(dr::Pi<ScalarFloat>) * as * dr::square(mu) /
-                            dr::square(lam_mean);
+                            dr::square(lam_mean) *
+                            powder::one_minus_exp_neg(.5f / dr::square(width_s));
         } else {
             width_s = dr::detach(m_sigma);
             if (lobes.surface)
@@ -920,56 +1132,36 @@ private:
 
     static Float h_of(Float a, Float b) { return a * b / (a + b); }
 
-    /// A direction whose projection is wi_xy + delta; z < 0 if off the disc
-    static Vector3f from_projected(Float x, Float y) {
-        Float r2 = x * x + y * y;
-        return Vector3f(x, y, dr::select(r2 < 1.f, dr::safe_sqrt(1.f - r2), -1.f));
-    }
-
-    /// Coherent lobe: 2D Cauchy distribution of wo_xy - wi_xy with scale b
-    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u) {
-        Float r = b * dr::sqrt(u.x() * (2.f - u.x())) / (1.f - u.x());
-        auto [s, c] = dr::sincos(dr::TwoPi<ScalarFloat> * u.y());
-        return from_projected(wi.x() + r * c, wi.y() + r * s);
+    /// Coherent lobe: a 2D Cauchy law of wo_xy - wi_xy with scale b, truncated
+    /// at the rim of the projected disc (powder_lobes.h)
+    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u,
+                                    Float u3) {
+        return powder::sample_projected<powder::Radial::Cauchy>(
+            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, u, u3);
     }
 
     static Float pdf_coherent(const Vector3f &wi, const Vector3f &wo, Float b) {
-        Float r2 = dr::square(wo.x() - wi.x()) + dr::square(wo.y() - wi.y()),
-              t = r2 + dr::square(b);
-        return b * dr::InvTwoPi<ScalarFloat> / (t * dr::sqrt(t)) * Frame3f::cos_theta(wo);
+        return powder::pdf_projected<powder::Radial::Cauchy>(
+            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, wo);
     }
 
-    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u) const {
-        auto [s, c] = dr::sincos(dr::TwoPi<ScalarFloat> * u.y());
-        Float r = width * dr::sqrt(-2.f * dr::log(1.f - u.x()));
-        if (m_specular == SpecularModel::HarveyShack) {
-            // 2D Gaussian of wo_xy + wi_xy in the projected plane
-            return from_projected(-wi.x() + r * c, -wi.y() + r * s);
-        } else {
-            // 2D Gaussian in the tangent plane of the mirror direction
-            // (exponential map), with theta = r
-            Vector3f mirror(-wi.x(), -wi.y(), wi.z());
-            Frame3f frame(mirror);
-            auto [sin_t, cos_t] = dr::sincos(r);
-            Vector3f wo = frame.to_world(Vector3f(sin_t * c, sin_t * s, cos_t));
-            return dr::select(r < MaxGaussianAngle, wo, Vector3f(0.f, 0.f, -1.f));
-        }
+    /// Surface lobe. Harvey-Shack: a 2D Gaussian of wo_xy + wi_xy (the spatial
+    /// frequency times lambda, MODEL.md Eq. 21-22) truncated at the rim of the
+    /// projected disc; Gaussian: a 2D Gaussian in the tangent plane of the mirror
+    /// direction (exponential map) truncated at the horizon (powder_lobes.h)
+    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u,
+                            Float u3) const {
+        if (m_specular == SpecularModel::HarveyShack)
+            return powder::sample_projected<powder::Radial::Gaussian>(
+                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width, u, u3);
+        return powder::sample_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, u, u3);
     }
 
     Float pdf_surface(const Vector3f &wi, const Vector3f &wo, Float width) const {
-        if (m_specular == SpecularModel::HarveyShack) {
-            Float r2 = dr::square(wo.x() + wi.x()) + dr::square(wo.y() + wi.y()),
-                  inv_var = dr::rcp(dr::square(width));
-            return inv_var * dr::InvTwoPi<ScalarFloat> * dr::exp(-.5f * r2 * inv_var) *
-                   Frame3f::cos_theta(wo);
-        } else {
-            Float theta = mirror_angle(wi, wo), inv_var = dr::rcp(dr::square(width));
-            Float jacobian = dr::select(theta < 1e-3f, 1.f + dr::square(theta) * (1.f / 6.f),
-                                        theta / dr::sin(theta));
-            Float pdf = inv_var * dr::InvTwoPi<ScalarFloat> *
-                        dr::exp(-.5f * dr::square(theta) * inv_var) * jacobian;
-            return dr::select(theta < MaxGaussianAngle, pdf, 0.f);
-        }
+        if (m_specular == SpecularModel::HarveyShack)
+            return powder::pdf_projected<powder::Radial::Gaussian>(
+                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width, wo);
+        return powder::pdf_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, wo);
     }
 
     Float pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
@@ -999,31 +1191,32 @@ private:
         return (double) dr::slice(v);
     }
 
-    static void check_range(const char *name, double value, double lo, double hi,
-                            bool lo_closed, bool hi_closed) {
-        // Closed bounds are compared in single precision: the plugin stores
-        // floats, and so may the caller (e.g. sigma = pi/2 rounded up)
-        float vf = (float) value;
-        bool ok = !std::isnan(value) &&
-                  (lo_closed ? vf >= (float) lo : value > lo) &&
-                  (hi_closed ? vf <= (float) hi : value < hi);
-        if (!ok)
-            Throw("powder: property \"%s\" = %g is out of range; valid range is "
-                  "%s%g, %g%s", name, value, lo_closed ? "[" : "(", lo, hi,
-                  hi_closed ? "]" : ")");
+    /// The member holding a float parameter of the table powder_param::Table
+    static Float Powder::*member(powder_param::Id p) {
+        static constexpr Float Powder::*members[powder_param::Count] = {
+            &Powder::m_av, &Powder::m_g, &Powder::m_kappa, &Powder::m_tau_o,
+            &Powder::m_thickness, &Powder::m_as, &Powder::m_lc, &Powder::m_sigma,
+            &Powder::m_radius, &Powder::m_radius2, &Powder::m_fraction2
+        };
+        return members[p];
     }
 
-    static double read_scalar(const Properties &props, const char *name, double def,
-                              double lo, double hi, bool lo_closed, bool hi_closed) {
-        double value = props.get<double>(name, def);
-        check_range(name, value, lo, hi, lo_closed, hi_closed);
-        return value;
+    /// Whether a parameter enters the model as configured (and is range-checked)
+    bool in_use(powder_param::Id p) const {
+        switch (p) {
+            case powder_param::TauO: return m_tau_given;
+            case powder_param::Radius: return !m_albedo;
+            case powder_param::Radius2:
+            case powder_param::Fraction2: return !m_albedo && m_two_populations;
+            case powder_param::CorrelationLength:
+                return m_specular == SpecularModel::HarveyShack;
+            case powder_param::Sigma: return m_specular == SpecularModel::Gaussian;
+            default: return true;
+        }
     }
 
-    static Float read_float(const Properties &props, const char *name, double def,
-                            double lo, double hi, bool lo_closed, bool hi_closed) {
-        return Float((ScalarFloat) read_scalar(props, name, def, lo, hi, lo_closed, hi_closed));
-    }
+    /// Whether mi.traverse exposes a parameter: those in use
+    bool exposed(powder_param::Id p) const { return in_use(p); }
 
     void check_albedo() const {
         ScalarFloat max_value;
@@ -1145,8 +1338,6 @@ private:
         return out;
     }
 
-    static constexpr float MaxGaussianAngle = 3.1f;
-
 private:
     ref<Texture> m_albedo;                          ///< null: albedo from Mie theory
     Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
@@ -1156,6 +1347,13 @@ private:
     powder::OpticalTable m_optics;
     std::vector<double> m_table_wavelengths;       ///< nm
     std::vector<std::complex<double>> m_index;     ///< n + i k at those wavelengths
+    UnpolarizedSpectrum m_k0_kappa = 0.f; ///< RGB and mono: k0 / kappa per channel
+    FloatStorage m_packed;          ///< spectral: grain tables for lookup_grains
+    VolumeConstants m_volume;       ///< when m_uniform_volume
+    bool m_uniform_volume = false;
+    bool m_coherent_saturated = false; ///< 2 c0 tau_o >= 18 in every channel
+    /// RGB and mono: the entries of m_rho_table and m_tau_table, one per channel
+    UnpolarizedSpectrum m_rho_channels = 0.f, m_tau_channels = 0.f;
     FloatStorage m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
         m_qsca2_table;
     SpecularModel m_specular;
@@ -1168,6 +1366,8 @@ private:
 
     MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
                    m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_rho_mean, m_tau_mean,
+                   m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho,
+                   m_volume.rho2_3, m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau,
                    m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
                    m_qsca2_table)
 };
@@ -1176,53 +1376,51 @@ NAMESPACE_END(mitsuba)
 
 // ---------------------------------------------------------------------------
 //  Registration. CMake compiles this file once per Mitsuba variant with
-//  POWDER_VARIANT_INDEX set (so that the 13 variants build in parallel and
-//  incrementally), and once with POWDER_REGISTRY for the plugin entry point.
+//  POWDER_VARIANT=<name> and its types (POWDER_BACKEND_<scalar|llvm|cuda>,
+//  POWDER_CHANNELS = 3 (RGB), 1 (mono) or 0 (spectral), POWDER_POLARIZED), so
+//  that the variants build in parallel and incrementally, and once with
+//  POWDER_REGISTRY for the plugin entry point, which registers every variant of
+//  the generated list powder_variants.h (CMakeLists.txt: POWDER_VARIANTS).
 // ---------------------------------------------------------------------------
 
 #define POWDER_CAT_(a, b) a##b
 #define POWDER_CAT(a, b) POWDER_CAT_(a, b)
+#define POWDER_STR_(a) #a
+#define POWDER_STR(a) POWDER_STR_(a)
 
-#if defined(POWDER_VARIANT_INDEX)
+#if defined(POWDER_VARIANT)
 NAMESPACE_BEGIN(mitsuba)
 namespace powder_variant {
-    using LLVMF = dr::DiffArray<JitBackend::LLVM, float>;
-    using CUDAF = dr::DiffArray<JitBackend::CUDA, float>;
-#if POWDER_VARIANT_INDEX == 0
-    using F = float; using S = Color<float, 3>;
-#elif POWDER_VARIANT_INDEX == 1
-    using F = float; using S = Spectrum<float, 4>;
-#elif POWDER_VARIANT_INDEX == 2
-    using F = float; using S = MuellerMatrix<Spectrum<float, 4>>;
-#elif POWDER_VARIANT_INDEX == 3
-    using F = LLVMF; using S = Color<LLVMF, 3>;
-#elif POWDER_VARIANT_INDEX == 4
-    using F = LLVMF; using S = Color<LLVMF, 1>;
-#elif POWDER_VARIANT_INDEX == 5
-    using F = LLVMF; using S = MuellerMatrix<Color<LLVMF, 1>>;
-#elif POWDER_VARIANT_INDEX == 6
-    using F = LLVMF; using S = Spectrum<LLVMF, 4>;
-#elif POWDER_VARIANT_INDEX == 7
-    using F = LLVMF; using S = MuellerMatrix<Spectrum<LLVMF, 4>>;
-#elif POWDER_VARIANT_INDEX == 8
-    using F = CUDAF; using S = Color<CUDAF, 3>;
-#elif POWDER_VARIANT_INDEX == 9
-    using F = CUDAF; using S = Color<CUDAF, 1>;
-#elif POWDER_VARIANT_INDEX == 10
-    using F = CUDAF; using S = MuellerMatrix<Color<CUDAF, 1>>;
-#elif POWDER_VARIANT_INDEX == 11
-    using F = CUDAF; using S = Spectrum<CUDAF, 4>;
-#elif POWDER_VARIANT_INDEX == 12
-    using F = CUDAF; using S = MuellerMatrix<Spectrum<CUDAF, 4>>;
+#if defined(POWDER_BACKEND_scalar)
+    using F = float;
+#elif defined(POWDER_BACKEND_llvm)
+    using F = dr::DiffArray<JitBackend::LLVM, float>;
+#elif defined(POWDER_BACKEND_cuda)
+    using F = dr::DiffArray<JitBackend::CUDA, float>;
 #else
-#error "POWDER_VARIANT_INDEX must lie in 0..12"
+#error "POWDER_BACKEND_<scalar|llvm|cuda> is not defined"
 #endif
-    static_assert(detail::variant<F, S>::name != nullptr,
-                  "this variant is not enabled in the installed Mitsuba");
+#if POWDER_CHANNELS == 0
+    using U = Spectrum<F, 4>;
+#else
+    using U = Color<F, POWDER_CHANNELS>;
+#endif
+#if POWDER_POLARIZED
+    using S = MuellerMatrix<U>;
+#else
+    using S = U;
+#endif
+    constexpr bool same(const char *a, const char *b) {
+        return *a == *b && (*a == '\0' || same(a + 1, b + 1));
+    }
+    static_assert(detail::variant<F, S>::name != nullptr &&
+                      same(detail::variant<F, S>::name, POWDER_STR(POWDER_VARIANT)),
+                  "the types derived from POWDER_VARIANT do not match the installed "
+                  "Mitsuba's variant of that name");
 }
 
-void POWDER_CAT(powder_register_, POWDER_VARIANT_INDEX)(std::string_view name,
-                                                         PluginRegisterFn fn) {
+void POWDER_CAT(powder_register_, POWDER_VARIANT)(std::string_view name,
+                                                   PluginRegisterFn fn) {
     using P = Powder<powder_variant::F, powder_variant::S>;
     fn(name, P::Variant, P::Type,
        [](void *, const Properties &p) -> ref<Object> { return new P(p); });
@@ -1230,22 +1428,17 @@ void POWDER_CAT(powder_register_, POWDER_VARIANT_INDEX)(std::string_view name,
 NAMESPACE_END(mitsuba)
 
 #elif defined(POWDER_REGISTRY)
+#include "powder_variants.h"
 NAMESPACE_BEGIN(mitsuba)
-#define POWDER_DECLARE(i) void powder_register_##i(std::string_view, PluginRegisterFn);
-POWDER_DECLARE(0) POWDER_DECLARE(1) POWDER_DECLARE(2) POWDER_DECLARE(3)
-POWDER_DECLARE(4) POWDER_DECLARE(5) POWDER_DECLARE(6) POWDER_DECLARE(7)
-POWDER_DECLARE(8) POWDER_DECLARE(9) POWDER_DECLARE(10) POWDER_DECLARE(11)
-POWDER_DECLARE(12)
+#define POWDER_DECLARE(v) void powder_register_##v(std::string_view, PluginRegisterFn);
+POWDER_FOR_EACH_VARIANT(POWDER_DECLARE)
 NAMESPACE_END(mitsuba)
 
 extern "C" MI_EXPORT void init_plugin(std::string_view name, mitsuba::PluginRegisterFn fn) {
     using namespace mitsuba;
-    powder_register_0(name, fn);  powder_register_1(name, fn);  powder_register_2(name, fn);
-    powder_register_3(name, fn);  powder_register_4(name, fn);  powder_register_5(name, fn);
-    powder_register_6(name, fn);  powder_register_7(name, fn);  powder_register_8(name, fn);
-    powder_register_9(name, fn);  powder_register_10(name, fn); powder_register_11(name, fn);
-    powder_register_12(name, fn);
+#define POWDER_REGISTER(v) powder_register_##v(name, fn);
+    POWDER_FOR_EACH_VARIANT(POWDER_REGISTER)
 }
 #else
-#error "compile powder.cpp with POWDER_VARIANT_INDEX=<0..12> or POWDER_REGISTRY"
+#error "compile powder.cpp with POWDER_VARIANT=<variant> or POWDER_REGISTRY"
 #endif
