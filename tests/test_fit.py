@@ -375,6 +375,8 @@ def test_batch_engine_equals_the_plugin_as_users_load_it(props):
     """BatchBRF (one llvm_ad_spectral instance, albedo and tau_o as numbers from
     grain_optics) equals a llvm_ad_mono instance per wavelength with the grains (PowderBRF)."""
     wavelengths = (351.0, 550.0, 1064.0) if "eta" in props else (400.0, 700.0, 860.0)
+    if "thickness" in props:
+        wavelengths = (633.0,)  # one wavelength: the llvm_ad_mono engine
     data = simulate(props, "shadows,backscatter", wavelengths)
     optics = GrainOptics(props)
     rho, _ = optics.albedo(data.wavelengths(), [props["radius"]], props.get("radius2"),

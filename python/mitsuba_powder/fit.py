@@ -39,7 +39,7 @@ import numpy as np
 
 from .grain_optics import GrainOptics
 from .measurements import Measurements
-from .model import BATCH_VARIANT, GRAIN_PROPERTIES, VARIANT, BatchBRF, PowderBRF
+from .model import GRAIN_PROPERTIES, VARIANT, BatchBRF, PowderBRF, batch_variant
 from .optimise import AGREEMENT, MultistartResult, ParamSpec, multistart, sobol_starts
 from .variants import use_variant
 
@@ -594,7 +594,8 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
         raise ValueError(f"polish = {polish} is out of range; valid range is [1, inf)")
     if len(data) == 0:
         raise ValueError("no measurements to fit")
-    with use_variant(BATCH_VARIANT):  # once for the whole fit: switching variants is slow
+    # once for the whole fit: switching variants is slow
+    with use_variant(batch_variant(data.wavelength)):
         return _fit(data, list(free or default_free(data, fixed)), dict(fixed or {}), starts,
                     polish, seed, max_iterations, progress, regime)
 

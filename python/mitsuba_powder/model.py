@@ -66,8 +66,14 @@ class PowderBRF:
 
 
 
-#: Variant of :class:`BatchBRF`: each lane carries its own wavelength
+#: Variant of :class:`BatchBRF` with several wavelengths: each lane carries its own
 BATCH_VARIANT = "llvm_ad_spectral"
+
+
+def batch_variant(wavelengths: np.ndarray) -> str:
+    """The variant :class:`BatchBRF` uses: ``llvm_ad_mono`` (the ``wavelength`` property) for
+    one wavelength, ``llvm_ad_spectral`` (each lane at its own wavelength) for several."""
+    return VARIANT if len(np.unique(wavelengths)) == 1 else BATCH_VARIANT
 
 #: Forward passes keep the graph's edges (several passes share one traced evaluation)
 _KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
@@ -96,11 +102,12 @@ def _forward_grad(source, output):
 class BatchBRF:
     """The plugin's BRF at every measured row for ``batch`` parameter sets at once.
 
-    One plugin instance in ``llvm_ad_spectral`` evaluates every row of every set in one lane,
+    One plugin instance evaluates every row of every set in one lane: in ``llvm_ad_spectral``
     each lane at its own wavelength (all four spectral samples of a lane set to the row's
-    wavelength), so an evaluation is one Dr.Jit launch and each derivative one forward-mode
-    pass over the same traced graph. Per-set values of the ``varying`` properties are gathered
-    per lane. The albedo is a number per set and wavelength, given to the plugin as a
+    wavelength), or, with one wavelength, in ``llvm_ad_mono`` at its ``wavelength`` property
+    (:func:`batch_variant`). An evaluation is one Dr.Jit launch and each derivative one
+    forward-mode pass over the same traced graph. Per-set values of the ``varying`` properties
+    are gathered per lane. The albedo is a number per set and wavelength, given to the plugin as a
     one-texel-per-value ``bitmap``; ``tau_o`` is given per lane (from the grain material, or
     per set when it is fitted). Values equal a ``llvm_ad_mono`` instance at the row's
     wavelength (``tests/test_fit.py``).
@@ -129,7 +136,11 @@ class BatchBRF:
         lane_row = np.tile(np.arange(n), self.batch)
         row_wl = np.searchsorted(self.wavelengths, data.wavelength)
         texel = lane_set * w + row_wl[lane_row]
-        with use_variant(BATCH_VARIANT):
+        self.variant = batch_variant(self.wavelengths)
+        mono = self.variant == VARIANT
+        if mono:
+            fixed["wavelength"] = float(self.wavelengths[0])
+        with use_variant(self.variant):
             texture = {"type": "bitmap", "raw": True, "filter_type": "nearest",
                        "wrap_mode": "clamp",
                        "data": mi.TensorXf(np.full((2, self.texels, 1), 0.5, np.float32))}
@@ -140,8 +151,9 @@ class BatchBRF:
             si.wi = mi.Vector3f(*[wi[lane_row, k].astype(np.float32) for k in range(3)])
             si.uv = mi.Point2f(mi.Float(((texel + 0.5) / self.texels).astype(np.float32)),
                                mi.Float(np.full(len(texel), 0.25, np.float32)))
-            lam = mi.Float(data.wavelength[lane_row].astype(np.float32))
-            si.wavelengths = mi.Spectrum(lam, lam, lam, lam)
+            if not mono:
+                lam = mi.Float(data.wavelength[lane_row].astype(np.float32))
+                si.wavelengths = mi.Spectrum(lam, lam, lam, lam)
             self.si = si
             self.wo = mi.Vector3f(*[wo[lane_row, k].astype(np.float32) for k in range(3)])
             self.mu_o = mi.Float(wo[lane_row, 2].astype(np.float32))
@@ -164,7 +176,7 @@ class BatchBRF:
         albedo = np.asarray(albedo, dtype=np.float64).reshape(self.batch, w)
         n = len(self.data)
         grads: dict[str, np.ndarray] = {}
-        with use_variant(BATCH_VARIANT):
+        with use_variant(self.variant):
             sources, lanes = {}, {}
             for name in self.varying:
                 v = np.asarray(values[name], dtype=np.float32).reshape(self.batch)
