@@ -215,3 +215,177 @@ def powder_colour(
     return PowderColour(wavelengths_nm, albedo, q_ext, q_sca, q_ext2, q_sca2, tau,
                         reflectance, xyz, srgb, lab, {k: v for k, v in props.items()
                                                       if k != "type"})
+
+
+# --------------------------------------------------------------------------------------
+#  Albedo from a measured reflectance
+
+
+#: Panels (radians) of the quadrature in theta_o of the 0:d reflectance: finer near the
+#: normal, where a narrow back-scattering cone sits at normal incidence
+_PANELS = (0.0, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 0.7, 1.1, np.pi / 2)
+
+
+def hemispherical_nodes(order: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes theta_o (degrees) and weights of the directional-hemispherical reflectance at
+    normal incidence: ``R = sum_k w_k BRF(0, theta_k)`` for
+    ``R = (1 / pi) int BRF cos(theta_o) d omega = 2 int_0^{pi/2} BRF cos sin d theta``
+    (at normal incidence the BRDF does not depend on the azimuth). Gauss-Legendre of
+    ``order`` nodes on each panel of :data:`_PANELS`."""
+    x, w = np.polynomial.legendre.leggauss(order)
+    theta, weight = [], []
+    for a, b in zip(_PANELS[:-1], _PANELS[1:]):
+        t = 0.5 * (b - a) * x + 0.5 * (b + a)
+        theta.append(t)
+        weight.append(0.5 * (b - a) * w * 2.0 * np.cos(t) * np.sin(t))
+    return np.degrees(np.concatenate(theta)), np.concatenate(weight)
+
+
+def _geometry(geometry) -> tuple[str, float, float]:
+    """("0:d", 0, 0) or ("brf", theta_i, theta_o) from "0:d", "I:O" or (I, O)."""
+    if isinstance(geometry, str):
+        text = geometry.strip().lower()
+        if text in ("0:d", "0/d"):
+            return "0:d", 0.0, 0.0
+        parts = text.replace("/", ":").split(":")
+        try:
+            ti, to = (float(p) for p in parts)
+        except ValueError:
+            raise ValueError(f"geometry = {geometry!r} is not valid; give '0:d' or "
+                             "'THETA_I:THETA_O' in degrees, e.g. '0:45'") from None
+    else:
+        try:
+            ti, to = (float(v) for v in geometry)
+        except (TypeError, ValueError):
+            raise ValueError(f"geometry = {geometry!r} is not valid; give '0:d' or a pair "
+                             "(theta_i, theta_o) in degrees") from None
+    if not (0.0 <= ti < 90.0) or not (-90.0 < to < 90.0):
+        raise ValueError(f"geometry = {geometry!r}: theta_i must lie in [0, 90) and theta_o "
+                         "in (-90, 90) degrees")
+    return "brf", ti, to
+
+
+def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: int = 33,
+                           **properties) -> np.ndarray:
+    """The single-scattering albedo per wavelength for which the plugin, with the other
+    ``properties``, reproduces a measured reflectance.
+
+    Args:
+        wavelengths_nm: (W,) wavelengths, nm.
+        reflectance: (W,) target: with ``geometry="0:d"`` the directional-hemispherical
+            reflectance at normal incidence (an integrating sphere, 0/d); with a pair
+            ``(theta_i, theta_o)`` (degrees, or a string ``"0:45"``) the reflectance factor
+            (BRF) in the plane of incidence (``0:45`` of colorimetry).
+        geometry: ``"0:d"`` or ``(theta_i, theta_o)``.
+        grid: albedo values per refinement round (three rounds).
+        **properties: other plugin properties as numbers (``amplitude_volume``, ``g``,
+            ``extinction``, ``tau_o`` or ``material``/``eta``/``k`` for tau_o, ``thickness``,
+            ``amplitude_surface``, ``correlation_length``, ``specular``, ``sigma``,
+            ``lobes``); not ``albedo`` or the grain radius (which the albedo replaces).
+
+    Returns:
+        (W,) albedo in [0, 1]: the plugin's reflectance with it equals the target to float
+        precision (the reflectance grows with the albedo).
+
+    Raises:
+        ValueError: a target the model cannot reach (naming the wavelength, the value and the
+            reachable range), a bad geometry, or bad arrays or properties.
+    """
+    from .grain_optics import GrainOptics
+    from .measurements import Measurements
+    from .model import BatchBRF, batch_variant
+
+    wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=np.float64))
+    target = np.atleast_1d(np.asarray(reflectance, dtype=np.float64))
+    if wl.ndim != 1 or target.shape != wl.shape or len(wl) == 0:
+        raise ValueError(f"wavelengths_nm and reflectance must be 1D arrays of the same "
+                         f"length; got {wl.shape} and {target.shape}")
+    if not np.all(np.isfinite(wl)) or np.any(wl <= 0) or len(np.unique(wl)) != len(wl):
+        raise ValueError("wavelengths_nm must be distinct positive finite numbers (nm)")
+    if not np.all(np.isfinite(target)):
+        raise ValueError("reflectance must be finite")
+    bad = [k for k in ("albedo", "radius", "radius2", "fraction2") if k in properties]
+    if bad:
+        raise ValueError(f"{bad} cannot be given: the albedo is what is solved for")
+    if grid < 3:
+        raise ValueError(f"grid = {grid} is out of range; valid range is [3, inf)")
+    kind, ti, to = _geometry(geometry)
+    order = np.argsort(wl)
+    wl, target = wl[order], target[order]
+    if kind == "0:d":
+        theta, weight = hemispherical_nodes()
+    else:
+        theta, weight = np.array([to]), np.array([1.0])
+    n, w = len(theta), len(wl)
+    rows = Measurements(np.full(n * w, ti), np.tile(theta, w), np.zeros(n * w),
+                        np.repeat(wl, n), np.zeros(n * w))
+    optics = {k: v for k, v in properties.items() if k in ("material", "eta", "k")}
+    tau = (np.full(w, float(properties["tau_o"])) if "tau_o" in properties
+           else GrainOptics(optics).tau_o(wl))
+    fixed = {k: v for k, v in properties.items() if k != "tau_o"}
+    engine = BatchBRF(rows, fixed, grid, [])
+    with use_variant(batch_variant(wl)):
+
+        def reflectances(albedo: np.ndarray) -> np.ndarray:
+            """(grid, W) reflectance of (grid, W) albedo values."""
+            brf, _ = engine.evaluate({}, albedo, tau)
+            return (brf.reshape(grid, w, n) * weight).sum(axis=2)
+
+        lo, hi = np.zeros(w), np.ones(w)
+        values = None
+        for _ in range(3):
+            albedo = lo + np.linspace(0.0, 1.0, grid)[:, None] * (hi - lo)
+            values = reflectances(albedo)
+            if lo.max() == 0.0 and hi.min() == 1.0:  # first round: the reachable range
+                low, high = values[0], values[-1]
+                out = (target < low - 1e-7) | (target > high + 1e-7)
+                if np.any(out):
+                    k = int(np.nonzero(out)[0][0])
+                    raise ValueError(
+                        f"reflectance {target[k]:.6g} at {wl[k]:g} nm cannot be reached: with "
+                        f"these properties the {'0:d reflectance' if kind == '0:d' else 'BRF'}"
+                        f" lies in [{low[k]:.6g}, {high[k]:.6g}] for albedo 0-1")
+            # the bracket of each wavelength (the reflectance grows with the albedo)
+            idx = np.clip(np.array([np.searchsorted(values[:, j], target[j])
+                                    for j in range(w)]), 1, grid - 1)
+            cols = np.arange(w)
+            lo, hi = albedo[idx - 1, cols], albedo[idx, cols]
+        r0, r1 = values[idx - 1, cols], values[idx, cols]
+        t = np.where(r1 > r0, (target - r0) / np.where(r1 > r0, r1 - r0, 1.0), 0.0)
+        result = np.clip(lo + np.clip(t, 0.0, 1.0) * (hi - lo), 0.0, 1.0)
+    out = np.empty(w)
+    out[order] = result
+    return out
+
+
+def write_spectrum(path, wavelengths_nm, values) -> None:
+    """A Mitsuba spectrum file (``<spectrum filename="..."/>``): one ``wavelength value`` line
+    per wavelength (nm), increasing."""
+    from pathlib import Path
+
+    wl = np.asarray(wavelengths_nm, dtype=np.float64)
+    order = np.argsort(wl)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    lines = [f"{wl[i]:.6g} {float(values[i]):.9g}" for i in order]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def reflectance_of_srgb(rgb) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth reflectance spectrum (380-780 nm by 5 nm) with the given sRGB colour
+    (components in [0, 1], or 0-255 integers), by colour-science's Mallett & Yuksel (2019)
+    spectral upsampling of the linear sRGB values."""
+    import colour
+
+    c = np.asarray(rgb, dtype=np.float64).reshape(-1)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise ValueError(f"srgb = {rgb!r}: give three numbers R,G,B")
+    if np.any(c > 1.0):
+        if np.all(c <= 255.0) and np.allclose(c, np.round(c)):
+            c = c / 255.0
+        else:
+            raise ValueError(f"srgb = {rgb!r}: components lie in [0, 1] (or 0-255 integers)")
+    if np.any(c < 0.0):
+        raise ValueError(f"srgb = {rgb!r}: components must be >= 0")
+    linear = colour.models.eotf_sRGB(c)
+    sd = colour.recovery.RGB_to_sd_Mallett2019(linear)
+    return np.asarray(sd.wavelengths, dtype=np.float64), np.asarray(sd.values, dtype=float)

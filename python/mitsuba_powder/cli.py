@@ -70,6 +70,64 @@ def _cmd_colour(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_reflectance_csv(path: str) -> tuple:
+    """(wavelengths nm, reflectance) from a CSV of two columns (an optional header line;
+    ``#`` lines are comments)."""
+    import csv
+    from pathlib import Path
+
+    import numpy as np
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"--reflectance {path}: no such file")
+    wl, values = [], []
+    with p.open(newline="", encoding="utf-8") as fh:
+        for lineno, row in enumerate(csv.reader(fh), start=1):
+            if not row or row[0].strip().startswith("#"):
+                continue
+            if len(row) != 2:
+                raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 2 "
+                                 "(wavelength in nm, reflectance)")
+            try:
+                a, b = float(row[0]), float(row[1])
+            except ValueError:
+                if not wl:  # a header line
+                    continue
+                raise ValueError(f"{path}, line {lineno}: {row!r} is not two numbers") from None
+            wl.append(a)
+            values.append(b)
+    if not wl:
+        raise ValueError(f"{path}: no data rows (wavelength nm, reflectance)")
+    return np.array(wl), np.array(values)
+
+
+def _cmd_albedo(args: argparse.Namespace) -> int:
+    from .appearance import albedo_for_reflectance, reflectance_of_srgb, write_spectrum
+
+    if (args.reflectance is None) == (args.srgb is None):
+        raise ValueError("give exactly one of --reflectance FILE.csv and --srgb R,G,B")
+    if args.srgb is not None:
+        try:
+            rgb = [float(v) for v in args.srgb.split(",")]
+        except ValueError:
+            raise ValueError(f"--srgb {args.srgb!r}: expected R,G,B, e.g. 0.7,0.35,0.25") \
+                from None
+        wl, target = reflectance_of_srgb(rgb)
+        source = f"sRGB {args.srgb} (spectral upsampling: Mallett & Yuksel 2019)"
+    else:
+        wl, target = _read_reflectance_csv(args.reflectance)
+        source = args.reflectance
+    props = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
+    albedo = albedo_for_reflectance(wl, target, args.geometry, **props)
+    write_spectrum(args.out, wl, albedo)
+    print(f"albedo for {source}, geometry {args.geometry}, properties "
+          f"{props or 'plugin defaults'}: {len(wl)} wavelengths {wl.min():g}-{wl.max():g} nm, "
+          f"albedo {albedo.min():.4f}-{albedo.max():.4f}")
+    print(f"wrote {args.out} (use it as <spectrum name=\"albedo\" filename=\"{args.out}\"/>)")
+    return 0
+
+
 def _value(text: str):
     """A --set value: a number if it parses as one, else the string."""
     try:
@@ -339,6 +397,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a powder property set on every powder BSDF (repeatable)")
     p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("albedo", help="the albedo spectrum that reproduces a measured "
+                                      "reflectance or an sRGB colour")
+    p.add_argument("--reflectance", default=None, metavar="FILE.csv",
+                   help="CSV of wavelength (nm), reflectance")
+    p.add_argument("--srgb", default=None, metavar="R,G,B",
+                   help="an sRGB colour (0-1 or 0-255), upsampled to a spectrum")
+    p.add_argument("--geometry", default="0:d",
+                   help="0:d (directional-hemispherical at normal incidence) or "
+                        "THETA_I:THETA_O, e.g. 0:45 (the BRF in the plane of incidence)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="another plugin property, e.g. --set extinction=0.5 (repeatable)")
+    p.add_argument("--out", required=True, help="output spectrum file (.spd)")
+    p.set_defaults(func=_cmd_albedo)
 
     p = sub.add_parser("colour", help="albedo, tau_o and colour of a powder from its grains")
     p.add_argument("--radius", type=float, default=0.017, help="grain radius, um")
