@@ -1158,6 +1158,44 @@ private:
                 }
             m_norm = dr::load<FloatStorage>(table.data(), table.size());
         }
+        pack_energy_norm();
+    }
+
+    /// Entries per record of m_norm_packed: the 2 incidence nodes bracketing mu_i of every
+    /// channel (RGB: 6, padded to 8; mono: 2), or of 2 x 2 (wavelength, incidence) nodes
+    /// (spectral: 4, one record per channel)
+    static constexpr size_t NormPacket =
+        is_spectral_v<Spectrum> ? 4 : (dr::size_v<UnpolarizedSpectrum> == 3 ? 8 : 2);
+
+    /// m_norm as records for one packet gather per lookup (gathers dominate the cost of
+    /// eval on CPUs); differentiable through the gather from m_norm
+    void pack_energy_norm() {
+        constexpr uint32_t C = (uint32_t) dr::size_v<UnpolarizedSpectrum>, P = NormPacket;
+        const uint32_t NW = is_spectral_v<Spectrum> ? NormWavelengths : C,
+                       n_rec = is_spectral_v<Spectrum> ? NW * NormMu : NormMu;
+        std::vector<uint32_t> src(P * n_rec);
+        for (uint32_t r = 0; r < n_rec; ++r)
+            for (uint32_t e = 0; e < P; ++e) {
+                uint32_t k = r % NormMu, kk = std::min(k + (e & 1u), NormMu - 1);
+                if (is_spectral_v<Spectrum>) {
+                    uint32_t j = std::min(r / NormMu + (e >> 1), NW - 1);
+                    src[P * r + e] = j * NormMu + kk;
+                } else {
+                    uint32_t c = std::min(e >> 1, C - 1); // padding repeats the last channel
+                    src[P * r + e] = c * NormMu + kk;
+                }
+            }
+        if constexpr (dr::is_jit_v<Float>) {
+            using UInt32Storage = DynamicBuffer<UInt32>;
+            m_norm_packed = dr::gather<FloatStorage>(
+                m_norm, dr::load<UInt32Storage>(src.data(), src.size()));
+            dr::make_opaque(m_norm_packed);
+        } else {
+            std::vector<ScalarFloat> packed(src.size());
+            for (size_t i = 0; i < src.size(); ++i)
+                packed[i] = m_norm[src[i]];
+            m_norm_packed = dr::load<FloatStorage>(packed.data(), packed.size());
+        }
     }
 
     /// N at incidence mu_i and the channel wavelengths lam (um): linear interpolation of
@@ -1169,23 +1207,21 @@ private:
         UInt32 k0 = UInt32(t);
         Float w = t - Float(k0);
         UnpolarizedSpectrum out(0.f);
-        for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
-            if constexpr (is_spectral_v<Spectrum>) {
+        using Packet = dr::Array<Float, NormPacket>;
+        if constexpr (is_spectral_v<Spectrum>) {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
                 Float s = dr::clip((lam[c] * 1e3f - TableMin) * (1.f / NormStep), 0.f,
                                    (ScalarFloat) NormWavelengths - 1.001f);
-                UInt32 j0 = UInt32(s), i0 = j0 * NormMu + k0;
+                UInt32 j0 = UInt32(s);
                 Float v = s - Float(j0);
-                Float a = dr::lerp(dr::gather<Float>(m_norm, i0, active),
-                                   dr::gather<Float>(m_norm, i0 + 1u, active), w),
-                      b = dr::lerp(dr::gather<Float>(m_norm, i0 + NormMu, active),
-                                   dr::gather<Float>(m_norm, i0 + NormMu + 1u, active), w);
-                out[c] = dr::lerp(a, b, v);
-            } else {
-                DRJIT_MARK_USED(lam);
-                UInt32 i0 = UInt32((uint32_t) c * NormMu) + k0;
-                out[c] = dr::lerp(dr::gather<Float>(m_norm, i0, active),
-                                  dr::gather<Float>(m_norm, i0 + 1u, active), w);
+                Packet e = dr::gather<Packet>(m_norm_packed, j0 * NormMu + k0, active);
+                out[c] = dr::lerp(dr::lerp(e[0], e[1], w), dr::lerp(e[2], e[3], w), v);
             }
+        } else {
+            DRJIT_MARK_USED(lam);
+            Packet e = dr::gather<Packet>(m_norm_packed, k0, active);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                out[c] = dr::lerp(e[2 * c], e[2 * c + 1], w);
         }
         return out;
     }
@@ -1623,6 +1659,7 @@ private:
     /// energy = "conserving": the factor N per wavelength (RGB/mono: channel) and mu_i
     /// node, at index wavelength * NormMu + node (update_energy_norm)
     FloatStorage m_norm;
+    FloatStorage m_norm_packed; ///< m_norm as records for energy_norm (pack_energy_norm)
     bool m_single, m_multiple, m_coherent, m_surface;
     bool m_finite_thickness = false;
     uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
@@ -1634,7 +1671,7 @@ private:
                    m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho,
                    m_volume.rho2_3, m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau,
                    m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
-                   m_qsca2_table, m_norm)
+                   m_qsca2_table, m_norm_packed)
 };
 
 NAMESPACE_END(mitsuba)
