@@ -83,6 +83,31 @@ def test_white_furnace_conserving(kappa_over_k0, ladder_reflectance):
     assert worst > 0.5
 
 
+@pytest.mark.parametrize("kappa_over_k0,tau", [(1.0, 3.0), (10.0, 2.0 / 3.0), (0.01, 3.0)])
+def test_white_furnace_conserving_spectral(kappa_over_k0, tau):
+    """Spectral variant (N per wavelength of a 10 nm grid, interpolated): the white powder
+    reflects min(R_L, 1) in every sRGB channel, in units of the film's response to a unit
+    spectrum (R_L, of a uniform albedo and a given tau_o, does not depend on wavelength)."""
+    use_variant("llvm_ad_spectral")
+    # kappa/k0 at 830 nm, the longest wavelength (larger at shorter ones)
+    props = {**white_powder(kappa_over_k0, 0.3, tau, "conserving"),
+             "extinction": kappa_over_k0 * 2.0 * np.pi / 0.83}
+    del props["wavelength"]
+    bsdf = mi.load_dict(props)
+    from mitsuba_powder.furnace import hemispherical_reflectance
+
+    # the film's channels for a reflectance of 1 at every wavelength, by the same quadrature
+    white = hemispherical_reflectance(
+        mi.load_dict({"type": "diffuse", "reflectance": {"type": "uniform", "value": 1.0}}),
+        0.0)
+    ladder = mi.load_dict({**props, "energy": "paper", "lobes": "single,multiple"})
+    for ti in (0.0, 60.0, 85.0):
+        r = hemispherical_reflectance(bsdf, ti) / white
+        expected = np.minimum(hemispherical_reflectance(ladder, ti) / white, 1.0)
+        assert np.all(r <= 1.0 + FURNACE_TOL), (ti, r)
+        np.testing.assert_allclose(r, expected, atol=FURNACE_TOL, err_msg=f"{ti} deg")
+
+
 def test_paper_mode_exceeds_one_where_conserving_does_not():
     """The negative control: the same furnace in paper mode passes 1 (broad cone, and a
     ladder that alone exceeds 1 at large tau_o)."""
@@ -234,17 +259,22 @@ def test_chi2_in_conserving_mode(tmp_path, monkeypatch):
     assert chi2.run(), chi2.messages
 
 
-@pytest.mark.parametrize("capped", [False, True])
-def test_gradients_in_conserving_mode(capped):
+@pytest.mark.parametrize("case", ["below_cap", "capped", "mie"])
+def test_gradients_in_conserving_mode(case):
     """AD through the tabulated N against central finite differences, below the cap
-    (A_v R_L < 1) and on it (A_v R_L > 1, where A_v no longer changes the volume part)."""
+    (A_v R_L < 1), on it (A_v R_L > 1 in some channels, where A_v no longer changes the
+    volume part) and with the Mie albedo (gradients of the radius through N)."""
     from test_autodiff import geometry, get_scalar, loss, loss_value, scalar_keys, set_scalar
 
     use_variant("llvm_ad_rgb")
+    capped = case == "capped"
     props = {"type": "powder", "albedo": {"type": "rgb", "value": [0.9, 0.7, 0.5]},
              "amplitude_volume": 3.0 if capped else 1.2, "g": 0.3, "extinction": 2.0,
              "tau_o": 4.0 if capped else 1.5, "thickness": 0.3, "amplitude_surface": 1e-3,
              "correlation_length": 1.5, "energy": "conserving"}
+    if case == "mie":
+        del props["albedo"]
+        props["radius"] = 0.08
     bsdf = mi.load_dict(props)
     params = mi.traverse(bsdf)
     si, wo, weights = geometry()
