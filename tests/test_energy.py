@@ -305,3 +305,37 @@ def test_gradients_in_conserving_mode(case):
         fd = (vals[0] - vals[1]) / (2 * h)
         scale = max(abs(fd), 1e-3 * abs(vals[0]) / max(abs(x0), 1e-6))
         assert abs(grad - fd) <= 0.02 * scale, f"{key}[{comp}]: AD {grad}, FD {fd}"
+
+
+def test_conserving_updates_reuse_kernels():
+    """The table of N is rebuilt on every update from opaque parameters: after a first
+    update no new kernel is compiled (paper mode's property, tested in test_autodiff)."""
+    from test_autodiff import geometry, loss
+
+    use_variant("llvm_ad_rgb")
+    bsdf = mi.load_dict({"type": "powder", "albedo": {"type": "rgb", "value": [0.9, 0.7, 0.5]},
+                         "g": 0.3, "extinction": 2.0, "tau_o": 1.5, "thickness": 0.3,
+                         "amplitude_surface": 1e-3, "energy": "conserving"})
+    params = mi.traverse(bsdf)
+    si, wo, weights = geometry(1000)
+
+    def run():
+        dr.eval(loss(bsdf, si, wo, weights))
+
+    params["g"] = mi.Float(0.2)
+    params.update()
+    run()  # compile once
+    dr.kernel_history_clear()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for key, value in [("g", 0.1), ("extinction", 5.0), ("tau_o", 3.0),
+                           ("thickness", 0.5), ("amplitude_volume", 0.8)]:
+            params[key] = mi.Float(value)
+            params.update()
+            run()
+        history = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert history, "no kernel ran"
+    assert all(h.get("cache_hit", False) for h in history), [
+        (h.get("cache_hit"), h.get("operation_count")) for h in history]
