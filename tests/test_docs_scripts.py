@@ -28,3 +28,12 @@ def test_showcase_script_small(tmp_path):
     assert meta["variant"] == "llvm_ad_spectral" and meta["width"] == 96
     assert (tmp_path / "showcase.png").stat().st_size > 5000
     assert not (tmp_path / "showcase_raw.exr").exists()
+
+
+def test_energy_grid_script(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "energy_grid.py")],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    conserving = proc.stdout.split("energy = conserving")[1]
+    rows = [line for line in conserving.splitlines() if line.startswith("| 0.001 ")]
+    assert rows and all(float(x) <= 1.002 for x in rows[0].strip("|").split("|")[1:]), rows

@@ -101,6 +101,6 @@ def test_every_documented_property_is_read(tmp_path):
                   "sigma": 0.2, "radius": 0.05, "radius2": 0.2, "fraction2": 0.3,
                   "material": "magnetite"})
     mi.load_dict({**common, "specular": "gaussian", "sigma": 0.2, "eta": 2.5, "k": 0.1})
-    mi.load_dict({**common, "albedo": 0.5})
+    mi.load_dict({**common, "albedo": 0.5, "energy": "conserving"})
     with pytest.raises(Exception, match="not_a_property"):
         mi.load_dict({**common, "albedo": 0.5, "not_a_property": 1.0})

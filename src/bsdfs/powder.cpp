@@ -198,6 +198,14 @@ Dry powder (:monosp:`powder`)
      coherent cone and the surface lobe) or ``cosine`` (cosine-weighted only; for
      measuring what the lobes gain, see docs/benchmarks.md)
 
+ * - energy
+   - |string|
+   - ``paper`` (Default: Eq. 23 as published) or ``conserving``: the volume terms are
+     scaled per wavelength and incidence so that their hemispherical reflectance equals
+     that of the ladder terms (L1 + L2) alone, at most 1: the coherent term redistributes
+     flux instead of creating it (docs/powder.md, "Energy"). Needs a spatially uniform
+     albedo.
+
  * - wavelength
    - |float|
    - Wavelength in nm at which mono variants evaluate the model (Default: 700,
@@ -288,6 +296,15 @@ public:
             Throw("powder: property \"sampling\" = \"%s\" is not valid; valid "
                   "values are \"lobes\" and \"cosine\"", sampling);
 
+        std::string energy = props.get<std::string>("energy", "paper");
+        if (energy == "paper")
+            m_conserving = false;
+        else if (energy == "conserving")
+            m_conserving = true;
+        else
+            Throw("powder: property \"energy\" = \"%s\" is not valid; valid "
+                  "values are \"paper\" and \"conserving\"", energy);
+
         double wavelength = props.get<double>("wavelength", 700.0);
         powder_param::check_range("wavelength", wavelength,
                                   { 0.0, powder_param::Inf, false, false });
@@ -310,7 +327,14 @@ public:
         if (props.has_property("albedo")) {
             m_albedo = props.get_texture<Texture>("albedo");
             check_albedo();
+            if (m_conserving && m_albedo->is_spatially_varying())
+                Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
+                      "uniform albedo (the normalisation is tabulated per wavelength and "
+                      "incidence), but property \"albedo\" is a spatially varying texture; "
+                      "use energy = \"paper\" or a uniform albedo");
         }
+
+        warn_outside_regime();
 
         // Wavelengths (nm) of the grain tables: a 1 nm grid for spectral
         // variants, the evaluation wavelengths otherwise
@@ -439,6 +463,9 @@ public:
         m_tau_mean = m_tau_given ? dr::detach(m_tau_o) : Float(dr::mean(m_tau_table));
 
         dr::make_opaque(m_rho_mean, m_tau_mean);
+
+        if (m_conserving)
+            update_energy_norm();
     }
 
     // -----------------------------------------------------------------------
@@ -597,6 +624,7 @@ public:
             oss << "  sigma = " << string::indent(m_sigma) << " [rad]," << std::endl;
         oss << "  lobes = \"" << lobes_string() << "\"," << std::endl
             << "  sampling = " << (m_cosine_only ? "cosine" : "lobes") << "," << std::endl
+            << "  energy = " << (m_conserving ? "conserving" : "paper") << "," << std::endl
             << "  wavelength = " << m_wavelength << " [nm] (mono)," << std::endl
             << "  rgb_wavelengths = " << m_rgb_wavelengths[0] << ", "
             << m_rgb_wavelengths[1] << ", " << m_rgb_wavelengths[2] << " [nm] (rgb)" << std::endl
@@ -944,6 +972,340 @@ private:
         return volume_constants(albedo(si, active), tau_o(si, active));
     }
 
+    // --------------------------------------------------------------- energy
+
+    /// Largest kappa / k0 inside the regime of enhanced back-scattering theory
+    /// (narrow coherent cone), above which the constructor warns
+    static constexpr double RegimeLimit = 0.25;
+
+    /// Warn when kappa / k0 = kappa lambda / (2 pi) exceeds RegimeLimit at a wavelength
+    /// the powder is evaluated at (k0 is smallest at the longest one): the rgb_wavelengths,
+    /// `wavelength` (mono) or the spectral table's range
+    void warn_outside_regime() const {
+        double lam_nm;
+        if constexpr (is_spectral_v<Spectrum>)
+            lam_nm = TableMin + (TableSize - 1) * TableStep;
+        else if constexpr (is_rgb_v<Spectrum>)
+            lam_nm = std::max({ (double) m_rgb_wavelengths[0], (double) m_rgb_wavelengths[1],
+                                (double) m_rgb_wavelengths[2] });
+        else
+            lam_nm = m_wavelength;
+        double kappa = value_of(m_kappa), ratio = kappa * lam_nm * 1e-3 / (2.0 * M_PI);
+        if (ratio > RegimeLimit)
+            Log(Warn,
+                "powder: property \"extinction\" = %g 1/um gives kappa/k0 = %.4g at %g nm, "
+                "above the threshold 0.25: outside the narrow-cone regime of enhanced "
+                "back-scattering theory (kappa/k0 << 1), where the coherent term is not "
+                "physical (with energy=\"paper\" a white powder reflects more than it "
+                "receives; see docs/powder.md, \"Energy\")",
+                kappa, ratio, lam_nm);
+    }
+
+    /* energy = "conserving": the volume terms are multiplied by
+         N(mu_i) = min(R_L, 1) / (R_L + R_C)   (per channel)
+       with R_L and R_C the directional-hemispherical reflectances of A_v (L1 + L2) / (4 pi)
+       and A_v C / (4 pi) at incidence mu_i, so that the volume part reflects min(R_L, 1).
+       N is tabulated on NormMu incidences with sqrt(mu_k) uniform from NormS0 to 1 (mu_k
+       from 4e-4 to 1, dense at grazing)
+       per channel (RGB, mono) or per wavelength of a NormStep grid over the spectral table,
+       and interpolated linearly (in sqrt(mu_i) and wavelength) by energy_norm. */
+    static constexpr uint32_t NormMu = 24, NormPhi = 64, NormInner = 24, NormOuter = 24,
+                              NormRadial = NormInner + NormOuter, NormQ = NormPhi * NormRadial;
+    static constexpr float NormStep = 10.f; ///< nm, spectral variants
+    static constexpr float NormS0 = .02f;   ///< sqrt(mu) of the first incidence node
+    static constexpr uint32_t NormWavelengths = (uint32_t) ((TableSize - 1) / 10) + 1;
+
+    /// Gauss-Legendre nodes and weights on (0, 1)
+    static void gauss_legendre01(uint32_t n, ScalarFloat *x, ScalarFloat *w) {
+        for (uint32_t i = 0; i < n; ++i) {
+            double z = std::cos(M_PI * (i + 0.75) / (n + 0.5)), pp = 1.0;
+            for (int it = 0; it < 100; ++it) {
+                double p1 = 1.0, p2 = 0.0;
+                for (uint32_t j = 1; j <= n; ++j) {
+                    double p3 = p2;
+                    p2 = p1;
+                    p1 = ((2.0 * j - 1.0) * z * p2 - (j - 1.0) * p3) / j;
+                }
+                pp = n * (z * p1 - p2) / (z * z - 1.0);
+                double z1 = z;
+                z = z1 - p1 / pp;
+                if (std::abs(z - z1) < 1e-15)
+                    break;
+            }
+            x[i] = (ScalarFloat) (0.5 * (1.0 - z));
+            w[i] = (ScalarFloat) (1.0 / ((1.0 - z * z) * pp * pp));
+        }
+    }
+
+    /**
+     * Node q of the quadrature of the projected disc at the incidence node `node`, in
+     * polar coordinates (r, phi) about the back-scattering point c = wi_xy (where the
+     * coherent cone sits): phi by the midpoint rule (NormPhi), r in [0, R(phi)] (R: the
+     * rim) split at r1 = min(R, 0.05): Gauss-Legendre in log r on [r_min, r1] (the cone
+     * can be 1e-3 wide), and in x on [r1, R] with r = R - (R - r1) x^2 (nodes dense at
+     * the rim, where mu_o -> 0). Returns wi, wo and the weight of dA = mu_o dOmega.
+     */
+    std::tuple<Vector3f, Vector3f, Float> norm_node(const UInt32 &node, const UInt32 &q,
+                                                    const FloatStorage &gx,
+                                                    const FloatStorage &gw) const {
+        UInt32 j = q / NormRadial, i = q - j * NormRadial;
+        Float t = NormS0 + Float(node) * ((1.f - NormS0) / (NormMu - 1)), mu = t * t,
+              mu2 = mu * mu,
+              cx = dr::sqrt(1.f - mu2);
+        auto [sin_p, cos_p] = dr::sincos((Float(j) + .5f) * (dr::TwoPi<ScalarFloat> / NormPhi));
+        Float ce = cx * cos_p, root = dr::sqrt(dr::square(ce) + mu2);
+        Mask ce_pos = ce > 0.f;
+        // R = distance to the rim along e; Rp = R + 2 ce (> 0), both without cancellation
+        Float R = dr::select(ce_pos, mu2 / (ce + root), root - ce),
+              Rp = dr::select(ce_pos, ce + root, mu2 / (root - ce));
+        Float r1 = dr::minimum(R, .05f), r_min = dr::minimum(1e-5f, .1f * r1);
+        Float x = dr::gather<Float>(gx, i), w = dr::gather<Float>(gw, i);
+        Mask inner = i < NormInner;
+        Float L = dr::log(r1 / r_min), r_in = r_min * dr::exp(x * L), d = R - r1,
+              r_out = R - d * dr::square(x);
+        Float r = dr::select(inner, r_in, r_out),
+              gap = dr::select(inner, R - r_in, d * dr::square(x)), // R - r
+              weight = dr::select(inner, w * L * dr::square(r_in), 2.f * w * d * x * r_out) *
+                       (dr::TwoPi<ScalarFloat> / NormPhi),
+              // 1 - |c + r e|^2 = (R - r) (R + r + 2 c.e)
+              mu_o = dr::sqrt(dr::maximum(gap * (Rp + r), 1e-14f));
+        return { Vector3f(cx, 0.f, mu), Vector3f(cx + r * cos_p, r * sin_p, mu_o), weight };
+    }
+
+    /// N = min(R_L, 1) / (R_L + R_C) from the integrals RL, RC of L1 + L2 and C over the
+    /// projected disc (without A_v / (4 pi)); 1 where the volume terms vanish
+    Float norm_from(const Float &rl, const Float &rc) const {
+        Float total = rl + rc, av_pos = dr::select(m_av > 0.f, m_av, 1.f),
+              cap = dr::select(m_av > 0.f, 4.f * dr::Pi<ScalarFloat> / av_pos,
+                               dr::Infinity<Float>);
+        Mask ok = total > 0.f;
+        return dr::select(ok, dr::minimum(rl, cap) / dr::select(ok, total, 1.f), 1.f);
+    }
+
+    /// Tabulate N (m_norm) for the configured volume lobes; differentiable
+    void update_energy_norm() {
+        if (!(m_single || m_multiple || m_coherent))
+            return; // no volume term: eval never reads the table
+        constexpr uint32_t C = (uint32_t) dr::size_v<UnpolarizedSpectrum>;
+        const uint32_t NW = is_spectral_v<Spectrum> ? NormWavelengths : C,
+                       G = (NW + C - 1) / C, n_blocks = G * NormMu;
+        std::vector<ScalarFloat> x(NormRadial), w(NormRadial);
+        gauss_legendre01(NormInner, x.data(), w.data());
+        gauss_legendre01(NormOuter, x.data() + NormInner, w.data() + NormInner);
+        FloatStorage gx = dr::load<FloatStorage>(x.data(), x.size()),
+                     gw = dr::load<FloatStorage>(w.data(), w.size());
+        Lobes lobes{ m_single, m_multiple, m_coherent, false };
+
+        // wavelength (nm) of channel c of group g (spectral variants)
+        auto group_wavelength = [&](const UInt32 &g, uint32_t c) {
+            return TableMin + Float(dr::minimum(g * C + c, UInt32(NW - 1))) * NormStep;
+        };
+        DRJIT_MARK_USED(group_wavelength);
+
+        if constexpr (dr::is_jit_v<Float>) {
+            uint32_t n = n_blocks * NormQ;
+            UInt32 lane = dr::arange<UInt32>(n), block = lane / NormQ,
+                   q = lane - block * NormQ, group = block / NormMu,
+                   node = block - group * NormMu;
+            auto [wi, wo, weight] = norm_node(node, q, gx, gw);
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(n);
+            si.wi = wi;
+            if constexpr (is_spectral_v<Spectrum>)
+                for (uint32_t c = 0; c < C; ++c)
+                    si.wavelengths[c] = group_wavelength(group, c);
+            VolumeConstants k = volume_constants(si, Mask(true));
+            auto [ladder, coherent] =
+                volume_terms(lobes, wi, wo, k, k0_over_kappa(wavelengths_um(si)));
+            UnpolarizedSpectrum norm;
+            for (uint32_t c = 0; c < C; ++c)
+                norm[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
+                                    dr::block_sum(coherent[c] * weight, NormQ));
+            // table index wl * NormMu + node, wl = g * C + c
+            UInt32 t = dr::arange<UInt32>(NW * NormMu), wl = t / NormMu,
+                   nd = t - wl * NormMu, g = wl / C, ch = wl - g * C,
+                   src = g * NormMu + nd;
+            Float table = dr::zeros<Float>(NW * NormMu);
+            for (uint32_t c = 0; c < C; ++c)
+                table = dr::select(ch == c, dr::gather<Float>(norm[c], src), table);
+            m_norm = table;
+            dr::make_opaque(m_norm);
+        } else {
+            std::vector<double> rl(n_blocks * C, 0.0), rc(n_blocks * C, 0.0);
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+            for (uint32_t b = 0; b < n_blocks; ++b) {
+                uint32_t g = b / NormMu, node = b - g * NormMu;
+                if constexpr (is_spectral_v<Spectrum>)
+                    for (uint32_t c = 0; c < C; ++c)
+                        si.wavelengths[c] = group_wavelength(g, c);
+                for (uint32_t q = 0; q < NormQ; ++q) {
+                    auto [wi, wo, weight] = norm_node(node, q, gx, gw);
+                    si.wi = wi;
+                    VolumeConstants k = volume_constants(si, Mask(true));
+                    auto [ladder, coherent] =
+                        volume_terms(lobes, wi, wo, k, k0_over_kappa(wavelengths_um(si)));
+                    for (uint32_t c = 0; c < C; ++c) {
+                        rl[b * C + c] += (double) ladder[c] * weight;
+                        rc[b * C + c] += (double) coherent[c] * weight;
+                    }
+                }
+            }
+            std::vector<ScalarFloat> table(NW * NormMu);
+            for (uint32_t wl = 0; wl < NW; ++wl)
+                for (uint32_t nd = 0; nd < NormMu; ++nd) {
+                    uint32_t b = (wl / C) * NormMu + nd, c = wl % C;
+                    table[wl * NormMu + nd] =
+                        norm_from((ScalarFloat) rl[b * C + c], (ScalarFloat) rc[b * C + c]);
+                }
+            m_norm = dr::load<FloatStorage>(table.data(), table.size());
+        }
+        pack_energy_norm();
+    }
+
+    /// Entries per record of m_norm_packed: the 2 incidence nodes bracketing mu_i of every
+    /// channel (RGB: 6, padded to 8; mono: 2), or of 2 x 2 (wavelength, incidence) nodes
+    /// (spectral: 4, one record per channel)
+    static constexpr size_t NormPacket =
+        is_spectral_v<Spectrum> ? 4 : (dr::size_v<UnpolarizedSpectrum> == 3 ? 8 : 2);
+
+    /// m_norm as records for one packet gather per lookup (gathers dominate the cost of
+    /// eval on CPUs); differentiable through the gather from m_norm
+    void pack_energy_norm() {
+        constexpr uint32_t C = (uint32_t) dr::size_v<UnpolarizedSpectrum>, P = NormPacket;
+        const uint32_t NW = is_spectral_v<Spectrum> ? NormWavelengths : C,
+                       n_rec = is_spectral_v<Spectrum> ? NW * NormMu : NormMu;
+        std::vector<uint32_t> src(P * n_rec);
+        for (uint32_t r = 0; r < n_rec; ++r)
+            for (uint32_t e = 0; e < P; ++e) {
+                uint32_t k = r % NormMu, kk = std::min(k + (e & 1u), NormMu - 1);
+                if (is_spectral_v<Spectrum>) {
+                    uint32_t j = std::min(r / NormMu + (e >> 1), NW - 1);
+                    src[P * r + e] = j * NormMu + kk;
+                } else {
+                    uint32_t c = std::min(e >> 1, C - 1); // padding repeats the last channel
+                    src[P * r + e] = c * NormMu + kk;
+                }
+            }
+        if constexpr (dr::is_jit_v<Float>) {
+            using UInt32Storage = DynamicBuffer<UInt32>;
+            m_norm_packed = dr::gather<FloatStorage>(
+                m_norm, dr::load<UInt32Storage>(src.data(), src.size()));
+            dr::make_opaque(m_norm_packed);
+        } else {
+            std::vector<ScalarFloat> packed(src.size());
+            for (size_t i = 0; i < src.size(); ++i)
+                packed[i] = m_norm[src[i]];
+            m_norm_packed = dr::load<FloatStorage>(packed.data(), packed.size());
+        }
+    }
+
+    /// N at incidence mu_i and the channel wavelengths lam (um): linear interpolation of
+    /// m_norm in sqrt(mu_i) (and in wavelength, spectral variants)
+    UnpolarizedSpectrum energy_norm(const Float &mu_i, const UnpolarizedSpectrum &lam,
+                                    Mask active) const {
+        Float t = dr::clip((dr::sqrt(mu_i) - NormS0) * ((NormMu - 1) / (1.f - NormS0)), 0.f,
+                           (ScalarFloat) NormMu - 1.001f);
+        UInt32 k0 = UInt32(t);
+        Float w = t - Float(k0);
+        UnpolarizedSpectrum out(0.f);
+        using Packet = dr::Array<Float, NormPacket>;
+        if constexpr (is_spectral_v<Spectrum>) {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                Float s = dr::clip((lam[c] * 1e3f - TableMin) * (1.f / NormStep), 0.f,
+                                   (ScalarFloat) NormWavelengths - 1.001f);
+                UInt32 j0 = UInt32(s);
+                Float v = s - Float(j0);
+                Packet e = dr::gather<Packet>(m_norm_packed, j0 * NormMu + k0, active);
+                out[c] = dr::lerp(dr::lerp(e[0], e[1], w), dr::lerp(e[2], e[3], w), v);
+            }
+        } else {
+            DRJIT_MARK_USED(lam);
+            Packet e = dr::gather<Packet>(m_norm_packed, k0, active);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                out[c] = dr::lerp(e[2 * c], e[2 * c + 1], w);
+        }
+        return out;
+    }
+
+    /**
+     * The volume terms of MODEL.md Eq. 9 (without A_v / (4 pi)) for the enabled lobes:
+     * (L1 + L2, C), the ladder and the cyclical (coherent) term, at the directions wi, wo
+     * (mu_i, mu_o > 0), with the volume constants k and k0 / kappa per channel.
+     */
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    volume_terms(const Lobes &lobes, const Vector3f &wi, const Vector3f &wo,
+                 const VolumeConstants &k, const UnpolarizedSpectrum &k0_kappa) const {
+        Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
+              mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
+              h = mu_prod / mu_sum; // = 1 / (2 v), MODEL.md Eq. 10b
+        UnpolarizedSpectrum ladder(0.f), coherent(0.f);
+
+        if (lobes.single) {
+            /* L1, MODEL.md Eq. 9a:
+               rho P(Theta) / (mu_i + mu_o) [1 - exp(-kappa d (1/mu_i + 1/mu_o))]
+               with the Henyey-Greenstein P = (1 - g^2) / t^(3/2),
+               t = 1 + g^2 - 2 g cos(Theta), cos(Theta) = -dot(wi, wo),
+               rewritten with non-negative terms so that it keeps its
+               precision when |g| -> 1:
+               g >= 0: t = (1 - g)^2 + g |wi + wo|^2
+               g <  0: t = (1 + g)^2 - g |wi - wo|^2
+               (|g| written as a select: the derivative of dr::abs at
+               g = 0 is 0, which gave a wrong d/dg at the default g = 0) */
+            Mask g_pos = m_g >= 0.f;
+            Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
+                      dr::select(g_pos, m_g, -m_g) *
+                          dr::select(g_pos, dr::squared_norm(wi + wo),
+                                     dr::squared_norm(wi - wo)),
+                  // P(Theta) / (mu_i + mu_o) as one division
+                  factor = (1.f - dr::square(m_g)) / (t * dr::sqrt(t) * mu_sum);
+            if (m_finite_thickness)
+                factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
+                                                    (dr::rcp(mu_i) + dr::rcp(mu_o)));
+            UnpolarizedSpectrum L1 = k.rho * factor;
+            ladder += L1;
+        }
+
+        if (lobes.multiple) {
+            // L2, MODEL.md Eq. 9b (corrected):
+            // 3 rho^2 [s(c0) + mu_i mu_o / (mu_i + mu_o)] / ((1 + c0 mu_i) (1 + c0 mu_o))
+            UnpolarizedSpectrum L2 = k.rho2_3 * (k.s_c0 + h) /
+                                     ((1.f + k.c0 * mu_i) * (1.f + k.c0 * mu_o));
+            ladder += L2;
+        }
+
+        if (lobes.coherent) {
+            /* C, MODEL.md Eq. 9c with Eq. 10:
+               3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
+               alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
+               u = (k0 / kappa) (mu_i - mu_o) */
+            Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod);
+            UnpolarizedSpectrum c = dr::sqrt(k.c0_sq + dr::square(k0_kappa) *
+                                             (dx * dx + dy * dy)),
+                u = k0_kappa * (mu_i - mu_o),
+                // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
+                w = c * q + mu_sum / (2.f * q),
+                denom = dr::square(w) + dr::square(u * q);
+            // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
+            // x = 2 c tau (powder::s_func), its series below x = 0.03
+            UnpolarizedSpectrum x = 2.f * c * k.tau, C;
+            if (m_coherent_saturated) { // x >= 18 everywhere: 1 - exp(-x) == 1
+                C = k.rho2_3 * (h * x + k.tau) / (x * denom);
+            } else {
+                auto small = x < 0.03f;
+                UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
+                                    xl = dr::select(small, 1.f, x),
+                    series = powder::one_minus_exp_neg_over_x_series(xs),
+                    // (the clamp as in powder::one_minus_exp_neg: no value changes)
+                    one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
+                    num = dr::select(small, h + k.tau * series,
+                                     h * xl + k.tau * one_minus_e),
+                    den = dr::select(small, denom, xl * denom);
+                C = k.rho2_3 * num / den;
+            }
+            coherent = C;
+        }
+        return { ladder, coherent };
+    }
+
     /**
      * The BRDF (without the cosine factor) of MODEL.md, Eq. 23, for the enabled
      * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Directions outside `active` are
@@ -955,81 +1317,16 @@ private:
                                   Mask active) const {
         Vector3f wi = dr::select(active, si.wi, Vector3f(0.f, 0.f, 1.f)),
                  wo = dr::select(active, wo_, Vector3f(0.f, 0.f, 1.f));
-        Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
-              mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
-              h = mu_prod / mu_sum; // = 1 / (2 v), MODEL.md Eq. 10b
+        Float mu_i = Frame3f::cos_theta(wi), mu_sum = mu_i + Frame3f::cos_theta(wo);
 
         UnpolarizedSpectrum result(0.f);
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
             VolumeConstants k = volume_constants(si, active);
-            UnpolarizedSpectrum volume(0.f); // L1 + L2 + C
-
-            if (lobes.single) {
-                /* L1, MODEL.md Eq. 9a:
-                   rho P(Theta) / (mu_i + mu_o) [1 - exp(-kappa d (1/mu_i + 1/mu_o))]
-                   with the Henyey-Greenstein P = (1 - g^2) / t^(3/2),
-                   t = 1 + g^2 - 2 g cos(Theta), cos(Theta) = -dot(wi, wo),
-                   rewritten with non-negative terms so that it keeps its
-                   precision when |g| -> 1:
-                   g >= 0: t = (1 - g)^2 + g |wi + wo|^2
-                   g <  0: t = (1 + g)^2 - g |wi - wo|^2
-                   (|g| written as a select: the derivative of dr::abs at
-                   g = 0 is 0, which gave a wrong d/dg at the default g = 0) */
-                Mask g_pos = m_g >= 0.f;
-                Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
-                          dr::select(g_pos, m_g, -m_g) *
-                              dr::select(g_pos, dr::squared_norm(wi + wo),
-                                         dr::squared_norm(wi - wo)),
-                      // P(Theta) / (mu_i + mu_o) as one division
-                      factor = (1.f - dr::square(m_g)) / (t * dr::sqrt(t) * mu_sum);
-                if (m_finite_thickness)
-                    factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
-                                                        (dr::rcp(mu_i) + dr::rcp(mu_o)));
-                UnpolarizedSpectrum L1 = k.rho * factor;
-                volume += L1;
-            }
-
-            if (lobes.multiple) {
-                // L2, MODEL.md Eq. 9b (corrected):
-                // 3 rho^2 [s(c0) + mu_i mu_o / (mu_i + mu_o)] / ((1 + c0 mu_i) (1 + c0 mu_o))
-                UnpolarizedSpectrum L2 = k.rho2_3 * (k.s_c0 + h) /
-                                         ((1.f + k.c0 * mu_i) * (1.f + k.c0 * mu_o));
-                volume += L2;
-            }
-
-            if (lobes.coherent) {
-                /* C, MODEL.md Eq. 9c with Eq. 10:
-                   3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
-                   alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
-                   u = (k0 / kappa) (mu_i - mu_o) */
-                UnpolarizedSpectrum k0_kappa = k0_over_kappa(lam);
-                Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod);
-                UnpolarizedSpectrum c = dr::sqrt(k.c0_sq + dr::square(k0_kappa) *
-                                                 (dx * dx + dy * dy)),
-                    u = k0_kappa * (mu_i - mu_o),
-                    // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
-                    w = c * q + mu_sum / (2.f * q),
-                    denom = dr::square(w) + dr::square(u * q);
-                // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
-                // x = 2 c tau (powder::s_func), its series below x = 0.03
-                UnpolarizedSpectrum x = 2.f * c * k.tau, C;
-                if (m_coherent_saturated) { // x >= 18 everywhere: 1 - exp(-x) == 1
-                    C = k.rho2_3 * (h * x + k.tau) / (x * denom);
-                } else {
-                    auto small = x < 0.03f;
-                    UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
-                                        xl = dr::select(small, 1.f, x),
-                        series = powder::one_minus_exp_neg_over_x_series(xs),
-                        // (the clamp as in powder::one_minus_exp_neg: no value changes)
-                        one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
-                        num = dr::select(small, h + k.tau * series,
-                                         h * xl + k.tau * one_minus_e),
-                        den = dr::select(small, denom, xl * denom);
-                    C = k.rho2_3 * num / den;
-                }
-                volume += C;
-            }
+            auto [ladder, coherent] = volume_terms(lobes, wi, wo, k, k0_over_kappa(lam));
+            UnpolarizedSpectrum volume = ladder + coherent; // L1 + L2 + C
+            if (m_conserving) // energy = "conserving": times N(mu_i), per channel
+                volume *= energy_norm(mu_i, lam, active);
             result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
         }
 
@@ -1358,6 +1655,11 @@ private:
         m_qsca2_table;
     SpecularModel m_specular;
     bool m_cosine_only = false;
+    bool m_conserving = false;      ///< energy = "conserving"
+    /// energy = "conserving": the factor N per wavelength (RGB/mono: channel) and mu_i
+    /// node, at index wavelength * NormMu + node (update_energy_norm)
+    FloatStorage m_norm;
+    FloatStorage m_norm_packed; ///< m_norm as records for energy_norm (pack_energy_norm)
     bool m_single, m_multiple, m_coherent, m_surface;
     bool m_finite_thickness = false;
     uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
@@ -1369,7 +1671,7 @@ private:
                    m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho,
                    m_volume.rho2_3, m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau,
                    m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
-                   m_qsca2_table)
+                   m_qsca2_table, m_norm_packed)
 };
 
 NAMESPACE_END(mitsuba)
