@@ -4,7 +4,6 @@ warning at load time; eval_pdf, sample weights, chi-square and gradients in cons
 
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -273,7 +272,7 @@ def test_gradients_in_conserving_mode(case):
     """AD through the tabulated N against central finite differences, below the cap
     (A_v R_L < 1), on it (A_v R_L > 1 in some channels, where A_v no longer changes the
     volume part) and with the Mie albedo (gradients of the radius through N)."""
-    from test_autodiff import geometry, get_scalar, loss, loss_value, scalar_keys, set_scalar
+    from test_autodiff import gradients_and_differences
 
     use_variant("llvm_ad_rgb")
     capped = case == "capped"
@@ -286,56 +285,22 @@ def test_gradients_in_conserving_mode(case):
         props["radius"] = 0.08
     bsdf = mi.load_dict(props)
     params = mi.traverse(bsdf)
-    si, wo, weights = geometry()
-    for key, comp in scalar_keys(params):
-        dr.enable_grad(params[key])
-        params.update()
-        dr.backward(loss(bsdf, si, wo, weights))
-        grad = dr.grad(params[key])
-        grad = float(grad[comp][0] if comp is not None else grad[0])
-        dr.disable_grad(params[key])
-        params.update()
-        x0 = get_scalar(params, key, comp)
-        h = 1e-2 * abs(x0)
-        vals = []
-        for x in (x0 + h, x0 - h):
-            set_scalar(params, key, comp, x)
-            vals.append(loss_value(bsdf, si, wo, weights))
-        set_scalar(params, key, comp, x0)
-        fd = (vals[0] - vals[1]) / (2 * h)
-        scale = max(abs(fd), 1e-3 * abs(vals[0]) / max(abs(x0), 1e-6))
+    for key, comp, grad, fd, (value, x0) in gradients_and_differences(bsdf, params):
+        scale = max(abs(fd), 1e-3 * abs(value) / max(abs(x0), 1e-6))
         assert abs(grad - fd) <= 0.02 * scale, f"{key}[{comp}]: AD {grad}, FD {fd}"
 
 
 def test_conserving_updates_reuse_kernels():
     """The table of N is rebuilt on every update from opaque parameters: after a first
     update no new kernel is compiled (paper mode's property, tested in test_autodiff)."""
-    from test_autodiff import geometry, loss
+    from test_autodiff import assert_updates_reuse_kernels
 
     use_variant("llvm_ad_rgb")
     bsdf = mi.load_dict({"type": "powder", "albedo": {"type": "rgb", "value": [0.9, 0.7, 0.5]},
                          "g": 0.3, "extinction": 2.0, "tau_o": 1.5, "thickness": 0.3,
                          "amplitude_surface": 1e-3, "energy": "conserving"})
     params = mi.traverse(bsdf)
-    si, wo, weights = geometry(1000)
-
-    def run():
-        dr.eval(loss(bsdf, si, wo, weights))
-
-    params["g"] = mi.Float(0.2)
+    params["g"] = mi.Float(0.2)  # a first update builds the table once
     params.update()
-    run()  # compile once
-    dr.kernel_history_clear()
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        for key, value in [("g", 0.1), ("extinction", 5.0), ("tau_o", 3.0),
-                           ("thickness", 0.5), ("amplitude_volume", 0.8)]:
-            params[key] = mi.Float(value)
-            params.update()
-            run()
-        history = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert history, "no kernel ran"
-    assert all(h.get("cache_hit", False) for h in history), [
-        (h.get("cache_hit"), h.get("operation_count")) for h in history]
+    assert_updates_reuse_kernels(bsdf, [("g", 0.1), ("extinction", 5.0), ("tau_o", 3.0),
+                                        ("thickness", 0.5), ("amplitude_volume", 0.8)])
