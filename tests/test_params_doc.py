@@ -64,6 +64,7 @@ def properties_read() -> set[str]:
     names |= set(re.findall(r'props\.(?:has_property|get<[\w:]+>|get_texture<Texture>|type)'
                             r'\("(\w+)"', SOURCE))
     names |= set(re.findall(r'read_spectrum\(props, "(\w+)"\)', SOURCE))
+    names |= set(re.findall(r'read_choice<\d+>\(props, "(\w+)"', SOURCE))
     return names
 
 

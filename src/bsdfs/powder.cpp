@@ -9,6 +9,8 @@
 
 #include <nanothread/nanothread.h>
 
+#include <array>
+
 #include "powder_lobes.h"
 #include "powder_optics.h"
 
@@ -45,6 +47,22 @@ inline void check_range(const char *name, double value, const Range &r) {
 }
 
 constexpr double Inf = std::numeric_limits<double>::infinity();
+
+/// Index of a string property's value among its `choices` (the first is the default);
+/// throws the project's error naming the property, the value and the valid values
+template <size_t N>
+size_t read_choice(const Properties &props, const char *name,
+                   const std::array<const char *, N> &choices) {
+    std::string value = props.get<std::string>(name, choices[0]);
+    for (size_t i = 0; i < N; ++i)
+        if (value == choices[i])
+            return i;
+    std::string valid;
+    for (size_t i = 0; i < N; ++i)
+        valid += std::string(i ? (i + 1 == N ? " and " : ", ") : "") + "\"" + choices[i] + "\"";
+    Throw("powder: property \"%s\" = \"%s\" is not valid; valid values are %s", name, value,
+          valid);
+}
 
 /**
  * The float parameters of the model (MODEL.md, "Parameters"). One row each drives
@@ -276,34 +294,16 @@ public:
             this->*member((powder_param::Id) i) = Float((ScalarFloat) value);
         }
 
-        std::string specular = props.get<std::string>("specular", "harvey_shack");
-        if (specular == "harvey_shack")
-            m_specular = SpecularModel::HarveyShack;
-        else if (specular == "gaussian")
-            m_specular = SpecularModel::Gaussian;
-        else
-            Throw("powder: property \"specular\" = \"%s\" is not valid; valid "
-                  "values are \"harvey_shack\" and \"gaussian\"", specular);
+        m_specular = powder_param::read_choice<2>(props, "specular",
+                                                  { "harvey_shack", "gaussian" }) == 0
+                         ? SpecularModel::HarveyShack : SpecularModel::Gaussian;
 
         parse_lobes(props.get<std::string>("lobes", "all"));
 
-        std::string sampling = props.get<std::string>("sampling", "lobes");
-        if (sampling == "lobes")
-            m_cosine_only = false;
-        else if (sampling == "cosine")
-            m_cosine_only = true;
-        else
-            Throw("powder: property \"sampling\" = \"%s\" is not valid; valid "
-                  "values are \"lobes\" and \"cosine\"", sampling);
-
-        std::string energy = props.get<std::string>("energy", "paper");
-        if (energy == "paper")
-            m_conserving = false;
-        else if (energy == "conserving")
-            m_conserving = true;
-        else
-            Throw("powder: property \"energy\" = \"%s\" is not valid; valid "
-                  "values are \"paper\" and \"conserving\"", energy);
+        m_cosine_only = powder_param::read_choice<2>(props, "sampling",
+                                                     { "lobes", "cosine" }) == 1;
+        m_conserving = powder_param::read_choice<2>(props, "energy",
+                                                    { "paper", "conserving" }) == 1;
 
         double wavelength = props.get<double>("wavelength", 700.0);
         powder_param::check_range("wavelength", wavelength,
