@@ -708,6 +708,13 @@ private:
             return m_tau_channels;
     }
 
+    /// Spectral variants: each channel's position in the 1 nm grain tables (entry
+    /// floor(t), weight t - floor(t) of the next), clamped inside the table
+    static UnpolarizedSpectrum table_position(const SurfaceInteraction3f &si) {
+        return dr::clip((si.wavelengths - TableMin) * (1.f / TableStep), 0.f,
+                        (float) (TableSize - 1) - 1e-3f);
+    }
+
     /// Spectral variants: (rho, tau_o) per channel from m_packed, with the same
     /// linear interpolation on the 1 nm grid as lookup(), but one packet gather
     /// of 4 values per channel instead of 2 gathers per table (gathers dominate
@@ -716,12 +723,11 @@ private:
     lookup_grains(const SurfaceInteraction3f &si, Mask active) const {
         UnpolarizedSpectrum rho(0.f), tau(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            UnpolarizedSpectrum t = dr::clip((si.wavelengths - TableMin) * (1.f / TableStep),
-                                             0.f, (float) (TableSize - 1) - 1e-3f);
+            UnpolarizedSpectrum t = table_position(si);
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
                 UInt32 i0 = UInt32(dr::floor(t[c]));
-                Float w = t[c] - Float(i0);
                 auto v = dr::gather<dr::Array<Float, 4>>(m_packed, i0, active);
+                Float w = t[c] - Float(i0);
                 rho[c] = dr::lerp(v[0], v[1], w);
                 tau[c] = dr::lerp(v[2], v[3], w);
             }
@@ -770,8 +776,7 @@ private:
                                Mask active) const {
         UnpolarizedSpectrum out(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            UnpolarizedSpectrum t = dr::clip((si.wavelengths - TableMin) * (1.f / TableStep),
-                                             0.f, (float) (TableSize - 1) - 1e-3f);
+            UnpolarizedSpectrum t = table_position(si);
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
                 UInt32 i0 = UInt32(dr::floor(t[c]));
                 Float w = t[c] - Float(i0);
