@@ -7,6 +7,7 @@
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
 
+#include <drjit/tensor.h>
 #include <nanothread/nanothread.h>
 
 #include <array>
@@ -82,7 +83,7 @@ struct Spec {
 
 enum Id : size_t {
     AmplitudeVolume, G, Extinction, TauO, Thickness, AmplitudeSurface, CorrelationLength,
-    Sigma, Radius, Radius2, Fraction2, Count
+    Sigma, Radius, Radius2, Fraction2, AgglomerateRadius, AgglomerateFill, Count
 };
 
 inline constexpr Spec Table[Count] = {
@@ -110,9 +111,78 @@ inline constexpr Spec Table[Count] = {
           { 0.0, Inf, false, false }, true },
     { "fraction2",          "-",    0.0,     "none (one population)",
           { 0.0, 1.0, true, true }, true },
+    { "agglomerate_radius", "um",   1.0,     "none (required with agglomerates)",
+          { 0.0, Inf, false, false }, true },
+    { "agglomerate_fill",   "-",    0.5,     "0.5",
+          { 0.0, 1.0, false, true }, true },
 };
 
 } // namespace powder_param
+
+/**
+ * The smallest and largest values a texture holds: every floating-point
+ * parameter it and the objects it holds expose through traverse() (a bitmap's
+ * texels, the values of constant and checkerboard textures). `found` is false
+ * when it exposes none (e.g. mesh attributes), `nan` when a value is NaN. Used
+ * to check the range of texture-valued parameters at load and after edits.
+ */
+template <typename Float, typename Spectrum>
+class TextureValues final : public TraversalCallback {
+public:
+    MI_IMPORT_CORE_TYPES()
+    using UnpolarizedSpectrum = unpolarized_spectrum_t<Spectrum>;
+
+    double lo = std::numeric_limits<double>::infinity(),
+           hi = -std::numeric_limits<double>::infinity();
+    bool found = false, nan = false;
+
+protected:
+    void put_value(std::string_view, void *ptr, uint32_t,
+                   const std::type_info &type) override {
+        if (type == typeid(TensorXf)) {
+            add(((TensorXf *) ptr)->array());
+        } else if (type == typeid(Float)) {
+            add(*(Float *) ptr);
+        } else if (type == typeid(Color3f)) {
+            for (size_t c = 0; c < 3; ++c)
+                add((*(Color3f *) ptr)[c]);
+        } else if constexpr (!std::is_same_v<UnpolarizedSpectrum, Color3f>) {
+            if (type == typeid(UnpolarizedSpectrum))
+                for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                    add((*(UnpolarizedSpectrum *) ptr)[c]);
+        }
+    }
+
+    void put_object(std::string_view, Object *obj, uint32_t) override {
+        if (obj)
+            obj->traverse(this);
+    }
+
+private:
+    template <typename T> void add(const T &v) {
+        if constexpr (dr::is_jit_v<T>) {
+            if (dr::width(v) == 0)
+                return;
+            found = true;
+            T d = dr::detach(v);
+            nan |= (bool) dr::slice(dr::any(dr::isnan(d)), 0);
+            lo = std::min(lo, (double) dr::slice(dr::min(d), 0));
+            hi = std::max(hi, (double) dr::slice(dr::max(d), 0));
+        } else if constexpr (dr::is_dynamic_array_v<T>) {
+            for (size_t i = 0; i < v.size(); ++i)
+                add_one((double) v[i]);
+        } else {
+            add_one((double) v);
+        }
+    }
+
+    void add_one(double x) {
+        found = true;
+        nan |= std::isnan(x);
+        lo = std::min(lo, x);
+        hi = std::max(hi, x);
+    }
+};
 
 /**!
 
@@ -129,11 +199,20 @@ Dry powder (:monosp:`powder`)
      from Mie theory for the grains, see ``radius``)
    - |exposed|, |differentiable|
 
+ * - grains
+   - |string|
+   - What scatters, without ``albedo`` (MODEL.md, "Grain models"): ``sphere`` (Default:
+     isolated Mie spheres of radius ``radius``), ``agglomerate`` (Mie spheres of radius
+     ``agglomerate_radius`` packed with crystallites of radius ``radius``; effective index
+     by ``mixing``) or ``slab`` (Hapke's equivalent slab for grains of size 2 ``radius``
+     much larger than the wavelength; needs Re(eta) > 1)
+
  * - radius
    - |float|
-   - Grain radius r in micrometres, without ``albedo`` (Default: 0.017, range (0, inf);
-     size parameter 2 pi r / lambda in [1e-3, 200])
-   - |exposed|, |differentiable|
+   - Grain radius r in micrometres, without ``albedo``; the crystallite radius with
+     agglomerates, where it only sets the size-parameter warning (Default: 0.017, range
+     (0, inf); size parameter 2 pi r / lambda in [1e-3, 200] for spheres)
+   - |exposed|, |differentiable| (not with agglomerates)
 
  * - radius2
    - |float|
@@ -147,6 +226,24 @@ Dry powder (:monosp:`powder`)
      (Default: none (one population), range [0, 1])
    - |exposed|, |differentiable|
 
+ * - agglomerate_radius
+   - |float|
+   - Radius R_a of an agglomerate in micrometres; required with ``grains`` =
+     ``agglomerate``, not allowed otherwise (Default: none (required with agglomerates),
+     range (0, inf); size parameter 2 pi R_a / lambda in [1e-3, 200])
+   - |exposed|, |differentiable|
+
+ * - agglomerate_fill
+   - |float|
+   - Volume fill f of crystallites in an agglomerate, ``grains`` = ``agglomerate`` only
+     (Default: 0.5, range (0, 1])
+   - |exposed|, |differentiable|
+
+ * - mixing
+   - |string|
+   - Effective-medium rule of an agglomerate: ``bruggeman`` (Default) or
+     ``maxwell_garnett``
+
  * - material
    - |string|
    - Grain material for Mie theory and tau_o: ``hematite``, ``magnetite`` or a
@@ -158,39 +255,39 @@ Dry powder (:monosp:`powder`)
      neither (Default: from ``material``, range eta > 0, k >= 0)
 
  * - amplitude_volume
-   - |float|
+   - |float| or |texture|
    - Amplitude A_v of the volume terms (Default: 1.0, range [0, inf))
    - |exposed|, |differentiable|
 
  * - g
-   - |float|
+   - |float| or |texture|
    - Henyey-Greenstein anisotropy of a grain (Default: 0.0, range (-1, 1))
    - |exposed|, |differentiable|
 
  * - extinction
-   - |float|
+   - |float| or |texture|
    - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range (0, inf))
    - |exposed|, |differentiable|
 
  * - tau_o
-   - |float|
+   - |float| or |texture|
    - Extrapolation ratio of the diffusion boundary; exposed only when given
      (Default: from Fresnel of Re(eta), range [0, inf))
    - |exposed|, |differentiable|
 
  * - thickness
-   - |float|
+   - |float| or |texture|
    - Layer thickness d in micrometres (Default: infinite, range [0, inf])
    - |exposed|, |differentiable|
 
  * - amplitude_surface
-   - |float|
+   - |float| or |texture|
    - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian)
      (Default: 0.0, range [0, inf))
    - |exposed|, |differentiable|
 
  * - correlation_length
-   - |float|
+   - |float| or |texture|
    - Correlation length l_c of the surface in micrometres, Harvey-Shack only
      (Default: 1.0, range (0, inf))
    - |exposed|, |differentiable|
@@ -200,7 +297,7 @@ Dry powder (:monosp:`powder`)
    - Surface model: ``harvey_shack`` (Default) or ``gaussian``
 
  * - sigma
-   - |float|
+   - |float| or |texture|
    - Half width of the Gaussian surface lobe in radians, Gaussian only (Default: 0.1,
      range (0, pi/2])
    - |exposed|, |differentiable|
@@ -235,7 +332,12 @@ Dry powder (:monosp:`powder`)
      (Default: ``611.3, 549.1, 464.3``)
 
 The float parameters and their defaults and ranges are those of the table
-``powder_param::Table`` above (tests/test_params_doc.py compares the two).
+``powder_param::Table`` above (tests/test_params_doc.py compares the two). Those
+marked |texture| may be any Mitsuba texture of one channel (e.g. a ``bitmap`` with
+``raw=true``), evaluated at ``si.uv``: every value it holds is checked against the
+range at load and after ``mi.traverse`` edits (its ``<name>.data``), and a
+thickness texture must be finite. A texture parameter is differentiable like
+Mitsuba's own; constant parameters keep their precomputed fast paths.
 
 The dry-powder reflectance model of Gerardin, Martinetto and Holzschuch
 (JOSA A 40(9), 2023), Eq. 23, with the conventions and corrections of the
@@ -278,18 +380,28 @@ public:
     Powder(const Properties &props) : Base(props) {
         m_tau_given = props.has_property("tau_o");
         m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        read_grain_model(props); // (first: agglomerates reject radius2 and fraction2)
         if (m_two_populations &&
             !(props.has_property("radius2") && props.has_property("fraction2")))
             Throw("powder: a second grain population needs both \"radius2\" and "
                   "\"fraction2\"; got only \"%s\"",
                   props.has_property("radius2") ? "radius2" : "fraction2");
-        // The float parameters, from the table powder_param::Table
+        // The float parameters, from the table powder_param::Table; a fittable one may
+        // be a texture (evaluated per interaction at si.uv)
         for (size_t i = 0; i < powder_param::Count; ++i) {
             const powder_param::Spec &spec = powder_param::Table[i];
             double value = spec.def;
             if (props.has_property(spec.name)) {
-                value = props.get<double>(spec.name);
-                powder_param::check_range(spec.name, value, spec.range);
+                auto type = props.type(spec.name);
+                if (spec.fittable && (type == Properties::Type::Object ||
+                                      type == Properties::Type::Reference ||
+                                      type == Properties::Type::ResolvedReference)) {
+                    m_textures[i] = props.get_texture<Texture>(spec.name);
+                    check_texture((powder_param::Id) i);
+                } else {
+                    value = props.get<double>(spec.name);
+                    powder_param::check_range(spec.name, value, spec.range);
+                }
             }
             this->*member((powder_param::Id) i) = Float((ScalarFloat) value);
         }
@@ -304,6 +416,15 @@ public:
                                                      { "lobes", "cosine" }) == 1;
         m_conserving = powder_param::read_choice<2>(props, "energy",
                                                     { "paper", "conserving" }) == 1;
+        if (m_conserving)
+            for (powder_param::Id p : { powder_param::AmplitudeVolume, powder_param::G,
+                                        powder_param::Extinction, powder_param::TauO,
+                                        powder_param::Thickness })
+                if (textured(p))
+                    Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
+                          "uniform \"%s\" (the normalisation is tabulated per wavelength and "
+                          "incidence), but it is a texture; use energy = \"paper\" or a "
+                          "float", powder_param::Table[p].name);
 
         double wavelength = props.get<double>("wavelength", 700.0);
         powder_param::check_range("wavelength", wavelength,
@@ -348,6 +469,8 @@ public:
         }
         for (double wl : m_table_wavelengths)
             m_index.push_back(m_optics.eval(wl * 1e-3)); // throws if outside the table
+        if (!m_albedo)
+            warn_crystallite_size();
 
         if (!m_tau_given) {
             std::vector<ScalarFloat> tau;
@@ -377,36 +500,49 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
-        for (size_t i = 0; i < powder_param::Count; ++i)
-            if (exposed((powder_param::Id) i))
-                cb->put(powder_param::Table[i].name, this->*member((powder_param::Id) i),
-                        (uint32_t) (powder_param::Table[i].fittable
-                                        ? ParamFlags::Differentiable
-                                        : ParamFlags::NonDifferentiable));
+        for (size_t i = 0; i < powder_param::Count; ++i) {
+            if (!exposed((powder_param::Id) i))
+                continue;
+            uint32_t flags = (uint32_t) (powder_param::Table[i].fittable
+                                             ? ParamFlags::Differentiable
+                                             : ParamFlags::NonDifferentiable);
+            if (m_textures[i]) // e.g. "g.data" for a bitmap, as Mitsuba's own textures
+                cb->put(powder_param::Table[i].name, m_textures[i], flags);
+            else
+                cb->put(powder_param::Table[i].name, this->*member((powder_param::Id) i), flags);
+        }
         if (m_albedo)
             cb->put("albedo", m_albedo, ParamFlags::Differentiable);
     }
 
     void parameters_changed(const std::vector<std::string> &keys = {}) override {
         // Parameters edited through mi.traverse() are checked like properties
-        for (size_t i = 0; i < powder_param::Count; ++i)
-            if (in_use((powder_param::Id) i))
+        for (size_t i = 0; i < powder_param::Count; ++i) {
+            if (!in_use((powder_param::Id) i))
+                continue;
+            if (m_textures[i])
+                check_texture((powder_param::Id) i);
+            else
                 powder_param::check_range(powder_param::Table[i].name,
                                           value_of(this->*member((powder_param::Id) i)),
                                           powder_param::Table[i].range);
+        }
 
         // An infinite layer needs no thickness factor (and 0 * inf would
-        // poison the gradients of the extinction)
-        m_finite_thickness = std::isfinite(value_of(m_thickness));
+        // poison the gradients of the extinction); a thickness texture is finite
+        m_finite_thickness = textured(powder_param::Thickness) ||
+                             std::isfinite(value_of(m_thickness));
 
         // Opaque first: the Mie tangents below must not bake the radius in as a literal
         // (that would compile a new kernel for every radius an optimiser tries)
         for (size_t i = 0; i < powder_param::Count; ++i)
             dr::make_opaque(this->*member((powder_param::Id) i));
 
-        bool grains_changed = keys.empty() || string::contains(keys, "radius") ||
-                              string::contains(keys, "radius2") ||
-                              string::contains(keys, "fraction2");
+        bool grains_changed = keys.empty();
+        for (powder_param::Id p : { powder_param::Radius, powder_param::Radius2,
+                                    powder_param::Fraction2, powder_param::AgglomerateRadius,
+                                    powder_param::AgglomerateFill })
+            grains_changed |= string::contains(keys, powder_param::Table[p].name);
         if (!m_albedo && grains_changed)
             update_mie_tables();
         if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
@@ -427,7 +563,7 @@ public:
             dr::make_opaque(m_rho_channels, m_tau_channels);
         }
 
-        if constexpr (!is_spectral_v<Spectrum>) {
+        if (!is_spectral_v<Spectrum> && !textured(powder_param::Extinction)) {
             m_k0_kappa = dr::TwoPi<ScalarFloat> /
                          (wavelengths_um(dr::zeros<SurfaceInteraction3f>(1)) * m_kappa);
             dr::make_opaque(m_k0_kappa);
@@ -437,10 +573,11 @@ public:
         // and tau_o are: precompute them (opaque, so no recompilation per value)
         m_uniform_volume = false;
         if constexpr (!is_spectral_v<Spectrum>) {
-            m_uniform_volume = !m_albedo || !m_albedo->is_spatially_varying();
+            m_uniform_volume = (!m_albedo || !m_albedo->is_spatially_varying()) &&
+                               !textured(powder_param::G) && !textured(powder_param::TauO);
             if (m_uniform_volume) {
                 SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
-                m_volume = volume_constants(albedo(si, true), tau_o(si, true));
+                m_volume = volume_constants(albedo(si, true), tau_o(si, true), m_g);
                 dr::make_opaque(m_volume.rho, m_volume.rho2_3, m_volume.c0_sq, m_volume.c0,
                                 m_volume.s_c0, m_volume.tau);
             }
@@ -460,7 +597,10 @@ public:
         // Detached means, used only to weight the sampling lobes
         m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
                               : Float(dr::mean(dr::detach(m_rho_table)));
-        m_tau_mean = m_tau_given ? dr::detach(m_tau_o) : Float(dr::mean(m_tau_table));
+        m_tau_mean = !m_tau_given ? Float(dr::mean(m_tau_table))
+                     : textured(powder_param::TauO)
+                         ? Float(dr::detach(m_textures[powder_param::TauO]->mean()))
+                         : dr::detach(m_tau_o);
 
         dr::make_opaque(m_rho_mean, m_tau_mean);
 
@@ -600,28 +740,47 @@ public:
 
     std::string to_string() const override {
         std::ostringstream oss;
+        auto show = [&](powder_param::Id p) {
+            return m_textures[p] ? string::indent(m_textures[p])
+                                 : string::indent(this->*member(p));
+        };
         oss << "Powder[" << std::endl
-            << "  amplitude_volume = " << string::indent(m_av) << "," << std::endl
-            << "  g = " << string::indent(m_g) << "," << std::endl
-            << "  extinction = " << string::indent(m_kappa) << " [1/um]," << std::endl
+            << "  amplitude_volume = " << show(powder_param::AmplitudeVolume) << ","
+            << std::endl
+            << "  g = " << show(powder_param::G) << "," << std::endl
+            << "  extinction = " << show(powder_param::Extinction) << " [1/um]," << std::endl
             << "  albedo = " << (m_albedo ? string::indent(m_albedo)
-                                          : std::string("from Mie theory")) << "," << std::endl
-            << "  radius = " << string::indent(m_radius) << " [um]," << std::endl;
+                                          : std::string("from the grains")) << "," << std::endl;
+        if (!m_albedo)
+            oss << "  grains = "
+                << (m_grain_model == powder::GrainModel::Sphere ? "sphere"
+                    : agglomerate() ? "agglomerate" : "slab") << "," << std::endl;
+        oss << "  radius = " << string::indent(m_radius) << " [um]," << std::endl;
+        if (!m_albedo && agglomerate())
+            oss << "  agglomerate_radius = " << string::indent(m_agglomerate_radius)
+                << " [um]," << std::endl
+                << "  agglomerate_fill = " << string::indent(m_agglomerate_fill) << ","
+                << std::endl
+                << "  mixing = "
+                << (m_mixing == powder::Mixing::Bruggeman ? "bruggeman" : "maxwell_garnett")
+                << "," << std::endl;
         if (m_two_populations)
             oss << "  radius2 = " << string::indent(m_radius2) << " [um]," << std::endl
                 << "  fraction2 = " << string::indent(m_fraction2) << "," << std::endl;
         oss << "  optical constants = " << m_optics.source << "," << std::endl
-            << "  tau_o = " << (m_tau_given ? string::indent(m_tau_o)
+            << "  tau_o = " << (m_tau_given ? show(powder_param::TauO)
                                             : std::string("from Fresnel (Re eta)"))
             << "," << std::endl
-            << "  thickness = " << string::indent(m_thickness) << " [um]," << std::endl
+            << "  thickness = " << show(powder_param::Thickness) << " [um]," << std::endl
             << "  specular = " << (m_specular == SpecularModel::HarveyShack
                                        ? "harvey_shack" : "gaussian") << "," << std::endl
-            << "  amplitude_surface = " << string::indent(m_as) << "," << std::endl;
+            << "  amplitude_surface = " << show(powder_param::AmplitudeSurface) << ","
+            << std::endl;
         if (m_specular == SpecularModel::HarveyShack)
-            oss << "  correlation_length = " << string::indent(m_lc) << " [um]," << std::endl;
+            oss << "  correlation_length = " << show(powder_param::CorrelationLength)
+                << " [um]," << std::endl;
         else
-            oss << "  sigma = " << string::indent(m_sigma) << " [rad]," << std::endl;
+            oss << "  sigma = " << show(powder_param::Sigma) << " [rad]," << std::endl;
         oss << "  lobes = \"" << lobes_string() << "\"," << std::endl
             << "  sampling = " << (m_cosine_only ? "cosine" : "lobes") << "," << std::endl
             << "  energy = " << (m_conserving ? "conserving" : "paper") << "," << std::endl
@@ -701,7 +860,7 @@ private:
     /// Extrapolation ratio per channel: the `tau_o` property or the Fresnel table
     UnpolarizedSpectrum tau_o(const SurfaceInteraction3f &si, Mask active) const {
         if (m_tau_given)
-            return UnpolarizedSpectrum(m_tau_o);
+            return UnpolarizedSpectrum(at(powder_param::TauO, si, active));
         if constexpr (is_spectral_v<Spectrum>)
             return lookup_grains(si, active).second;
         else
@@ -791,6 +950,68 @@ private:
         return out;
     }
 
+    /// The grain model (`grains`, `mixing`) and the properties each model requires or
+    /// rejects (MODEL.md, "Grain models")
+    void read_grain_model(const Properties &props) {
+        static constexpr const char *Models[3] = { "sphere", "agglomerate", "slab" };
+        size_t model = powder_param::read_choice<3>(props, "grains",
+                                                    { Models[0], Models[1], Models[2] });
+        m_grain_model = (powder::GrainModel) model;
+        bool agglomerate = m_grain_model == powder::GrainModel::Agglomerate;
+        if (props.has_property("albedo"))
+            for (const char *name : { "grains", "agglomerate_radius", "agglomerate_fill",
+                                      "mixing" })
+                if (props.has_property(name))
+                    Throw("powder: property \"%s\" has no effect together with \"albedo\" "
+                          "(a given albedo replaces the one computed from the grains); give "
+                          "one or the other", name);
+        for (const char *name : { "agglomerate_radius", "agglomerate_fill", "mixing" })
+            if (!agglomerate && props.has_property(name))
+                Throw("powder: property \"%s\" is used only with grains = \"agglomerate\" "
+                      "(here grains = \"%s\")", name, Models[model]);
+        if (agglomerate && !props.has_property("agglomerate_radius"))
+            Throw("powder: grains = \"agglomerate\" needs property \"agglomerate_radius\" "
+                  "(radius of an agglomerate in micrometres; valid range is (0, inf))");
+        if (agglomerate && m_two_populations)
+            Throw("powder: property \"%s\" (a second grain population) cannot be used with "
+                  "grains = \"agglomerate\", which has one population; valid with grains = "
+                  "\"sphere\" or \"slab\"",
+                  props.has_property("radius2") ? "radius2" : "fraction2");
+        size_t mixing = powder_param::read_choice<2>(props, "mixing",
+                                                     { "bruggeman", "maxwell_garnett" });
+        m_mixing = (powder::Mixing) mixing;
+    }
+
+    /// Agglomerates: warn when the crystallites are too large for a mixing rule
+    /// (size parameter 2 pi r |n + ik| / lambda above 0.5 at some table wavelength)
+    void warn_crystallite_size() const {
+        if (m_grain_model != powder::GrainModel::Agglomerate)
+            return;
+        std::vector<double> x = powder::crystallite_size_parameters(
+            value_of(m_radius), m_table_wavelengths, m_index);
+        size_t worst = 0, over = 0;
+        double longest = 0.0; // longest wavelength (nm) above the limit
+        for (size_t i = 0; i < x.size(); ++i) {
+            if (x[i] > x[worst])
+                worst = i;
+            if (x[i] > CrystalliteLimit) {
+                ++over;
+                longest = std::max(longest, m_table_wavelengths[i]);
+            }
+        }
+        if (over > 0)
+            Log(Warn,
+                "powder: crystallites of radius %g um have the size parameter 2 pi r |n + ik| "
+                "/ lambda = %.3g at %g nm, above %g (the limit of an effective-medium mixing "
+                "rule) at %zu of the %zu wavelengths evaluated, the longest %g nm; the "
+                "agglomerate albedo is outside the model's validity there (MODEL.md, \"Grain "
+                "models\")", value_of(m_radius), x[worst], m_table_wavelengths[worst],
+                CrystalliteLimit, over, x.size(), longest);
+    }
+
+    /// Largest crystallite size parameter for which a mixing rule holds (MODEL.md)
+    static constexpr double CrystalliteLimit = 0.5;
+
     /// Optical constants from `eta`/`k` or `material` (name or YAML file)
     static powder::OpticalTable load_optics(const Properties &props) {
         bool has_eta = props.has_property("eta"), has_k = props.has_property("k");
@@ -867,12 +1088,24 @@ private:
     /// The table (powder_optics.h) spreads the wavelengths over Dr.Jit's threads.
     void update_mie_tables() {
         powder::Grains grains{ value_of(m_radius), value_of(m_radius2),
-                               value_of(m_fraction2), m_two_populations };
+                               value_of(m_fraction2), m_two_populations, m_grain_model,
+                               value_of(m_agglomerate_radius), value_of(m_agglomerate_fill),
+                               m_mixing };
+        // the grain parameters in use, each with its column of derivatives
+        std::vector<std::pair<Float *, double powder::AlbedoRow::*>> grain_params;
+        for (auto [p, d] : { std::pair{ powder_param::Radius, &powder::AlbedoRow::d_r1 },
+                             std::pair{ powder_param::Radius2, &powder::AlbedoRow::d_r2 },
+                             std::pair{ powder_param::Fraction2, &powder::AlbedoRow::d_f2 },
+                             std::pair{ powder_param::AgglomerateRadius,
+                                        &powder::AlbedoRow::d_ra },
+                             std::pair{ powder_param::AgglomerateFill,
+                                        &powder::AlbedoRow::d_fill } })
+            if (in_use(p))
+                grain_params.emplace_back(&(this->*member(p)), d);
         bool tangents = false;
         if constexpr (dr::is_diff_v<Float>)
-            tangents = dr::grad_enabled(m_radius) ||
-                       (m_two_populations &&
-                        (dr::grad_enabled(m_radius2) || dr::grad_enabled(m_fraction2)));
+            for (auto &gp : grain_params)
+                tangents |= dr::grad_enabled(*gp.first);
         auto parallel_for = [](size_t n, auto &&row) {
             if (n < 32) { // RGB and mono: too few rows to share
                 for (size_t i = 0; i < n; ++i)
@@ -889,14 +1122,10 @@ private:
             grains, m_table_wavelengths, m_index, tangents, parallel_for);
 
         size_t n = rows.size();
-        std::vector<ScalarFloat> rho(n), d_r1(n), d_r2(n), d_f2(n), qe1(n), qs1(n), qe2(n),
-            qs2(n);
+        std::vector<ScalarFloat> rho(n), qe1(n), qs1(n), qe2(n), qs2(n);
         for (size_t i = 0; i < n; ++i) {
             const powder::AlbedoRow &r = rows[i];
             rho[i] = (ScalarFloat) r.rho;
-            d_r1[i] = (ScalarFloat) r.d_r1;
-            d_r2[i] = (ScalarFloat) r.d_r2;
-            d_f2[i] = (ScalarFloat) r.d_f2;
             qe1[i] = (ScalarFloat) r.q_ext1;
             qs1[i] = (ScalarFloat) r.q_sca1;
             qe2[i] = (ScalarFloat) r.q_ext2;
@@ -910,11 +1139,12 @@ private:
         if constexpr (dr::is_diff_v<Float>) {
             if (tangents) {
                 // value unchanged (the differences are zero), first derivatives exact
-                m_rho_table = m_rho_table + load(d_r1) * (m_radius - dr::detach(m_radius));
-                if (m_two_populations)
-                    m_rho_table = m_rho_table +
-                                  load(d_r2) * (m_radius2 - dr::detach(m_radius2)) +
-                                  load(d_f2) * (m_fraction2 - dr::detach(m_fraction2));
+                for (auto &[param, column] : grain_params) {
+                    std::vector<ScalarFloat> d(n);
+                    for (size_t i = 0; i < n; ++i)
+                        d[i] = (ScalarFloat) (rows[i].*column);
+                    m_rho_table = m_rho_table + load(d) * (*param - dr::detach(*param));
+                }
             }
         }
         m_qext_table = load(qe1);
@@ -929,14 +1159,13 @@ private:
     // ---------------------------------------------------------- the model
 
     /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), MODEL.md Eq. 10;
-    /// precomputed in RGB and mono variants, where lambda is fixed
-    UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &lam) const {
-        if constexpr (is_spectral_v<Spectrum>)
-            return dr::TwoPi<ScalarFloat> / (lam * m_kappa);
-        else {
-            DRJIT_MARK_USED(lam);
-            return m_k0_kappa;
-        }
+    /// precomputed in RGB and mono variants, where lambda is fixed, unless the
+    /// extinction is a texture
+    UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &lam,
+                                      const SurfaceInteraction3f &si, Mask active) const {
+        if (is_spectral_v<Spectrum> || textured(powder_param::Extinction))
+            return dr::TwoPi<ScalarFloat> / (lam * at(powder_param::Extinction, si, active));
+        return m_k0_kappa;
     }
 
     /// Per-channel values of the volume terms that depend on the grains only
@@ -948,15 +1177,16 @@ private:
             c0,
             s_c0,   ///< s(c0), MODEL.md Eq. 9b
             tau;    ///< tau_o
+        DRJIT_STRUCT(VolumeConstants, rho, rho2_3, c0_sq, c0, s_c0, tau)
     };
 
     VolumeConstants volume_constants(const UnpolarizedSpectrum &rho,
-                                     const UnpolarizedSpectrum &tau) const {
+                                     const UnpolarizedSpectrum &tau, const Float &g) const {
         VolumeConstants k;
         k.rho = rho;
         k.tau = tau;
         k.rho2_3 = 3.f * dr::square(rho);
-        k.c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f);
+        k.c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * g), 0.f);
         k.c0 = dr::sqrt(k.c0_sq);
         k.s_c0 = powder::s_func(k.c0, tau);
         return k;
@@ -968,13 +1198,14 @@ private:
     VolumeConstants volume_constants(const SurfaceInteraction3f &si, Mask active) const {
         if (m_uniform_volume)
             return m_volume;
+        Float g = at(powder_param::G, si, active);
         if constexpr (is_spectral_v<Spectrum>) {
             if (!m_albedo && !m_tau_given) { // both from one packet gather per channel
                 auto [rho, tau] = lookup_grains(si, active);
-                return volume_constants(rho, tau);
+                return volume_constants(rho, tau, g);
             }
         }
-        return volume_constants(albedo(si, active), tau_o(si, active));
+        return volume_constants(albedo(si, active), tau_o(si, active), g);
     }
 
     // --------------------------------------------------------------- energy
@@ -995,10 +1226,13 @@ private:
                                 (double) m_rgb_wavelengths[2] });
         else
             lam_nm = m_wavelength;
-        double kappa = value_of(m_kappa), ratio = kappa * lam_nm * 1e-3 / (2.0 * M_PI);
+        double kappa = textured(powder_param::Extinction)
+                           ? texture_values(powder_param::Extinction).hi : value_of(m_kappa),
+               ratio = kappa * lam_nm * 1e-3 / (2.0 * M_PI);
         if (ratio > RegimeLimit)
             Log(Warn,
-                "powder: property \"extinction\" = %g 1/um gives kappa/k0 = %.4g at %g nm, "
+                "powder: property \"extinction\" = %g 1/um (its largest value) gives "
+                "kappa/k0 = %.4g at %g nm, "
                 "above the threshold 0.25: outside the narrow-cone regime of enhanced "
                 "back-scattering theory (kappa/k0 << 1), where the coherent term is not "
                 "physical (with energy=\"paper\" a white powder reflects more than it "
@@ -1119,8 +1353,8 @@ private:
                 for (uint32_t c = 0; c < C; ++c)
                     si.wavelengths[c] = group_wavelength(group, c);
             VolumeConstants k = volume_constants(si, Mask(true));
-            auto [ladder, coherent] =
-                volume_terms(lobes, wi, wo, k, k0_over_kappa(wavelengths_um(si)));
+            auto [ladder, coherent] = volume_terms(
+                lobes, si, wi, wo, k, k0_over_kappa(wavelengths_um(si), si, true), true);
             UnpolarizedSpectrum norm;
             for (uint32_t c = 0; c < C; ++c)
                 norm[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
@@ -1146,8 +1380,9 @@ private:
                     auto [wi, wo, weight] = norm_node(node, q, gx, gw);
                     si.wi = wi;
                     VolumeConstants k = volume_constants(si, Mask(true));
-                    auto [ladder, coherent] =
-                        volume_terms(lobes, wi, wo, k, k0_over_kappa(wavelengths_um(si)));
+                    auto [ladder, coherent] = volume_terms(
+                        lobes, si, wi, wo, k, k0_over_kappa(wavelengths_um(si), si, true),
+                        true);
                     for (uint32_t c = 0; c < C; ++c) {
                         rl[b * C + c] += (double) ladder[c] * weight;
                         rc[b * C + c] += (double) coherent[c] * weight;
@@ -1234,11 +1469,13 @@ private:
     /**
      * The volume terms of MODEL.md Eq. 9 (without A_v / (4 pi)) for the enabled lobes:
      * (L1 + L2, C), the ladder and the cyclical (coherent) term, at the directions wi, wo
-     * (mu_i, mu_o > 0), with the volume constants k and k0 / kappa per channel.
+     * (mu_i, mu_o > 0), with the volume constants k and k0 / kappa per channel; g,
+     * kappa and d of the interaction si.
      */
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
-    volume_terms(const Lobes &lobes, const Vector3f &wi, const Vector3f &wo,
-                 const VolumeConstants &k, const UnpolarizedSpectrum &k0_kappa) const {
+    volume_terms(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wi,
+                 const Vector3f &wo, const VolumeConstants &k,
+                 const UnpolarizedSpectrum &k0_kappa, Mask active) const {
         Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
               mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
               h = mu_prod / mu_sum; // = 1 / (2 v), MODEL.md Eq. 10b
@@ -1255,16 +1492,18 @@ private:
                g <  0: t = (1 + g)^2 - g |wi - wo|^2
                (|g| written as a select: the derivative of dr::abs at
                g = 0 is 0, which gave a wrong d/dg at the default g = 0) */
-            Mask g_pos = m_g >= 0.f;
-            Float t = dr::select(g_pos, dr::square(1.f - m_g), dr::square(1.f + m_g)) +
-                      dr::select(g_pos, m_g, -m_g) *
+            Float g = at(powder_param::G, si, active);
+            Mask g_pos = g >= 0.f;
+            Float t = dr::select(g_pos, dr::square(1.f - g), dr::square(1.f + g)) +
+                      dr::select(g_pos, g, -g) *
                           dr::select(g_pos, dr::squared_norm(wi + wo),
                                      dr::squared_norm(wi - wo)),
                   // P(Theta) / (mu_i + mu_o) as one division
-                  factor = (1.f - dr::square(m_g)) / (t * dr::sqrt(t) * mu_sum);
+                  factor = (1.f - dr::square(g)) / (t * dr::sqrt(t) * mu_sum);
             if (m_finite_thickness)
-                factor *= powder::one_minus_exp_neg(m_kappa * m_thickness *
-                                                    (dr::rcp(mu_i) + dr::rcp(mu_o)));
+                factor *= powder::one_minus_exp_neg(
+                    at(powder_param::Extinction, si, active) *
+                    at(powder_param::Thickness, si, active) * (dr::rcp(mu_i) + dr::rcp(mu_o)));
             UnpolarizedSpectrum L1 = k.rho * factor;
             ladder += L1;
         }
@@ -1328,15 +1567,18 @@ private:
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
             VolumeConstants k = volume_constants(si, active);
-            auto [ladder, coherent] = volume_terms(lobes, wi, wo, k, k0_over_kappa(lam));
+            auto [ladder, coherent] = volume_terms(lobes, si, wi, wo, k,
+                                                   k0_over_kappa(lam, si, active), active);
             UnpolarizedSpectrum volume = ladder + coherent; // L1 + L2 + C
             if (m_conserving) // energy = "conserving": times N(mu_i), per channel
                 volume *= energy_norm(mu_i, lam, active);
-            result = volume * (m_av * dr::InvFourPi<ScalarFloat>);
+            result = volume * (at(powder_param::AmplitudeVolume, si, active) *
+                               dr::InvFourPi<ScalarFloat>);
         }
 
         if (lobes.surface) {
             UnpolarizedSpectrum S;
+            Float as = at(powder_param::AmplitudeSurface, si, active);
             if (m_specular == SpecularModel::HarveyShack) {
                 /* S, MODEL.md Eq. 21-22 (Harvey-Shack, Gaussian PSD):
                    A_s' (4 pi^2 / lam^4) (mu_i + mu_o)^2 pi l_c^2 exp(-pi^2 l_c^2 f_s^2),
@@ -1344,17 +1586,18 @@ private:
                 Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y();
                 UnpolarizedSpectrum inv_lam2 = dr::rcp(dr::square(lam)),
                     fs2 = (sx * sx + sy * sy) * inv_lam2;
-                Float lc2 = dr::square(m_lc);
-                S = (m_as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
+                Float lc2 = dr::square(at(powder_param::CorrelationLength, si, active));
+                S = (as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
                      dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
                     dr::square(inv_lam2) *
                     dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
             } else {
                 /* S, MODEL.md Eq. 20 (Gaussian in the angle theta_s to the mirror
                    direction): A_s / (sigma sqrt(2 pi)) exp(-theta_s^2 / (2 sigma^2)) */
-                Float theta = mirror_angle(wi, wo);
-                S = m_as * dr::InvSqrtTwoPi<ScalarFloat> / m_sigma *
-                    dr::exp(-dr::square(theta) / (2.f * dr::square(m_sigma)));
+                Float theta = mirror_angle(wi, wo),
+                      sigma = at(powder_param::Sigma, si, active);
+                S = as * dr::InvSqrtTwoPi<ScalarFloat> / sigma *
+                    dr::exp(-dr::square(theta) / (2.f * dr::square(sigma)));
             }
             result += S;
         }
@@ -1372,9 +1615,10 @@ private:
     LobeWeights lobe_weights(const SurfaceInteraction3f &si, Float lam_mean,
                              const Lobes &lobes) const {
         Float mu = dr::maximum(Frame3f::cos_theta(si.wi), 1e-4f);
-        Float av = dr::detach(m_av), rho = dr::clip(m_rho_mean, 0.f, 1.f),
-              g = dr::detach(m_g), kappa = dr::detach(m_kappa),
-              tau = m_tau_mean, as = dr::detach(m_as);
+        auto value = [&](powder_param::Id p) { return dr::detach(at(p, si, true)); };
+        Float av = value(powder_param::AmplitudeVolume), rho = dr::clip(m_rho_mean, 0.f, 1.f),
+              g = value(powder_param::G), kappa = value(powder_param::Extinction),
+              tau = m_tau_mean, as = value(powder_param::AmplitudeSurface);
 
         // Rough estimates of each term's directional albedo (integral of
         // f cos over the hemisphere = integral of f over the projected disc)
@@ -1400,7 +1644,7 @@ private:
         Float width_s;
         if (m_specular == SpecularModel::HarveyShack) {
             width_s = lam_mean * dr::InvPi<ScalarFloat> * dr::InvSqrtTwo<ScalarFloat> /
-                      dr::detach(m_lc);
+                      value(powder_param::CorrelationLength);
             // S integrated over the projected plane, times the share of a centred
             // Gaussian of this width inside the unit disc (small l_c: wide lobes
             // carry little energy onto the hemisphere)
@@ -1409,7 +1653,7 @@ private:
                             dr::square(lam_mean) *
                             powder::one_minus_exp_neg(.5f / dr::square(width_s));
         } else {
-            width_s = dr::detach(m_sigma);
+            width_s = value(powder_param::Sigma);
             if (lobes.surface)
                 e_surface = as * width_s * dr::SqrtTwoPi<ScalarFloat> * mu;
         }
@@ -1498,7 +1742,8 @@ private:
         static constexpr Float Powder::*members[powder_param::Count] = {
             &Powder::m_av, &Powder::m_g, &Powder::m_kappa, &Powder::m_tau_o,
             &Powder::m_thickness, &Powder::m_as, &Powder::m_lc, &Powder::m_sigma,
-            &Powder::m_radius, &Powder::m_radius2, &Powder::m_fraction2
+            &Powder::m_radius, &Powder::m_radius2, &Powder::m_fraction2,
+            &Powder::m_agglomerate_radius, &Powder::m_agglomerate_fill
         };
         return members[p];
     }
@@ -1507,14 +1752,76 @@ private:
     bool in_use(powder_param::Id p) const {
         switch (p) {
             case powder_param::TauO: return m_tau_given;
-            case powder_param::Radius: return !m_albedo;
+            case powder_param::Radius: return !m_albedo && !agglomerate();
             case powder_param::Radius2:
             case powder_param::Fraction2: return !m_albedo && m_two_populations;
+            case powder_param::AgglomerateRadius:
+            case powder_param::AgglomerateFill: return !m_albedo && agglomerate();
             case powder_param::CorrelationLength:
                 return m_specular == SpecularModel::HarveyShack;
             case powder_param::Sigma: return m_specular == SpecularModel::Gaussian;
             default: return true;
         }
+    }
+
+    bool agglomerate() const { return m_grain_model == powder::GrainModel::Agglomerate; }
+
+    /// Whether a float parameter is given as a texture
+    bool textured(powder_param::Id p) const { return (bool) m_textures[p]; }
+
+    /// A float parameter at an interaction: its texture at si.uv, or its value
+    Float at(powder_param::Id p, const SurfaceInteraction3f &si, Mask active) const {
+        if (m_textures[p])
+            return m_textures[p]->eval_1(si, active);
+        DRJIT_MARK_USED(si);
+        DRJIT_MARK_USED(active);
+        return this->*member(p);
+    }
+
+    /// The values a parameter's texture holds (TextureValues)
+    TextureValues<Float, Spectrum> texture_values(powder_param::Id p) const {
+        TextureValues<Float, Spectrum> values;
+        // (traverse() only reads here; Mitsuba declares it non-const)
+        const_cast<Texture *>(m_textures[p].get())->traverse(&values);
+        return values;
+    }
+
+    /**
+     * Check every value a parameter's texture holds against the parameter's range
+     * (a thickness texture must be finite); a texture that exposes no values is
+     * accepted with a warning, and one that is not supported as a texture (the grain
+     * parameters) is an error
+     */
+    void check_texture(powder_param::Id p) const {
+        const powder_param::Spec &spec = powder_param::Table[p];
+        switch (p) {
+            case powder_param::Radius: case powder_param::Radius2:
+            case powder_param::Fraction2: case powder_param::AgglomerateRadius:
+            case powder_param::AgglomerateFill:
+                Throw("powder: property \"%s\" cannot be a texture yet (the albedo of "
+                      "spatially varying grains is not implemented); give a float, or give "
+                      "\"albedo\" as a texture instead", spec.name);
+            default: break;
+        }
+        TextureValues<Float, Spectrum> values = texture_values(p);
+        if (!values.found) {
+            Log(Warn, "powder: the texture of property \"%s\" exposes no values, so its "
+                      "range %s cannot be checked", spec.name, range_string(spec.range));
+            return;
+        }
+        powder_param::Range range = spec.range;
+        if (p == powder_param::Thickness)
+            range.hi_closed = false; // finite: see m_finite_thickness
+        if (values.nan || !range.contains(values.lo) || !range.contains(values.hi))
+            Throw("powder: property \"%s\" is a texture with values from %g to %g%s; valid "
+                  "range is %s", spec.name, values.lo, values.hi,
+                  values.nan ? " and NaN" : "", range_string(range));
+    }
+
+    static std::string range_string(const powder_param::Range &r) {
+        std::ostringstream oss;
+        oss << (r.lo_closed ? "[" : "(") << r.lo << ", " << r.hi << (r.hi_closed ? "]" : ")");
+        return oss.str();
     }
 
     /// Whether mi.traverse exposes a parameter: those in use
@@ -1643,7 +1950,11 @@ private:
 private:
     ref<Texture> m_albedo;                          ///< null: albedo from Mie theory
     Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
+    ref<Texture> m_textures[powder_param::Count]; ///< texture-valued float parameters
     Float m_radius, m_radius2, m_fraction2;
+    Float m_agglomerate_radius, m_agglomerate_fill;
+    powder::GrainModel m_grain_model = powder::GrainModel::Sphere;
+    powder::Mixing m_mixing = powder::Mixing::Bruggeman;
     Float m_rho_mean, m_tau_mean;
     bool m_tau_given = false, m_two_populations = false;
     powder::OpticalTable m_optics;
@@ -1671,10 +1982,10 @@ private:
     ScalarFloat m_wavelength;
     ScalarFloat m_rgb_wavelengths[3];
 
-    MI_TRAVERSE_CB(Base, m_albedo, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
-                   m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_rho_mean, m_tau_mean,
-                   m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume.rho,
-                   m_volume.rho2_3, m_volume.c0_sq, m_volume.c0, m_volume.s_c0, m_volume.tau,
+    MI_TRAVERSE_CB(Base, m_albedo, m_textures, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
+                   m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_agglomerate_radius,
+                   m_agglomerate_fill, m_rho_mean, m_tau_mean,
+                   m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume,
                    m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
                    m_qsca2_table, m_norm_packed)
 };

@@ -11,9 +11,12 @@
  *    derivatives D_n(mx) and D_n(x));
  *  - the extrapolation ratio tau_o from the Fresnel reflectance of the grain
  *    material (Zhu, Pine & Weitz 1991, MODEL.md);
+ *  - the grain models (MODEL.md, "Grain models"): isolated spheres, agglomerates
+ *    of crystallites (Bruggeman or Maxwell Garnett effective index) and Hapke's
+ *    equivalent slab;
  *  - the albedo table over wavelength of one or two grain populations (MODEL.md,
  *    "Single-scattering albedo rho from the grains"), with the derivatives of rho
- *    with respect to the radii and the fraction, rows spread over a caller's
+ *    with respect to the fittable grain parameters, rows spread over a caller's
  *    parallel-for.
  */
 
@@ -27,6 +30,7 @@
 #include <sstream>
 #include <string>
 #include <stdexcept>
+#include <utility>
 #include <vector>
 
 /* Self-contained (no Mitsuba headers): the plugin includes it, and so does the
@@ -273,27 +277,88 @@ inline double tau_o_fresnel(double n) {
     return (2.0 / 3.0) * (1.0 + r) / (1.0 - r);
 }
 
+// ------------------------------------------------------------ grain models
+
+/// What scatters in the powder (MODEL.md, "Grain models"): isolated Mie spheres,
+/// agglomerates of crystallites (effective medium), or Hapke's equivalent slab
+enum class GrainModel { Sphere, Agglomerate, Slab };
+
+/// Effective-medium rule of an agglomerate
+enum class Mixing { Bruggeman, MaxwellGarnett };
+
+/**
+ * Effective index sqrt(eps) of crystallites of index m at volume fill f in air.
+ * Bruggeman: the root of 2 eps^2 - b eps - eps_i = 0, b = (3 f - 1) eps_i + (2 - 3 f),
+ * with Im(eps) >= 0 (for a real eps_i the roots are real and of opposite signs: the
+ * positive one). Maxwell Garnett: eps = (1 + 2 f beta) / (1 - f beta),
+ * beta = (eps_i - 1) / (eps_i + 2). The principal square root has Re >= 0, Im >= 0.
+ */
+inline std::complex<double> effective_index(std::complex<double> m, double f, Mixing mixing) {
+    using C = std::complex<double>;
+    C eps_i = m * m, eps;
+    if (mixing == Mixing::Bruggeman) {
+        C b = (3.0 * f - 1.0) * eps_i + (2.0 - 3.0 * f),
+          d = std::sqrt(b * b + 8.0 * eps_i),
+          e1 = (b + d) / 4.0, e2 = (b - d) / 4.0;
+        // the physical root: larger Im (absorbing medium); for (nearly) real roots,
+        // which differ in sign, the larger real part
+        double tol = 1e-12 * (std::abs(e1) + std::abs(e2));
+        if (std::abs(e1.imag() - e2.imag()) <= tol)
+            eps = e1.real() >= e2.real() ? e1 : e2;
+        else
+            eps = e1.imag() > e2.imag() ? e1 : e2;
+    } else {
+        C beta = (eps_i - 1.0) / (eps_i + 2.0);
+        eps = (1.0 + 2.0 * f * beta) / (1.0 - f * beta);
+    }
+    return std::sqrt(eps);
+}
+
+/// Hapke's equivalent-slab albedo and its derivative with respect to the grain
+/// size D (um) for index m = n + ik (n > 1) at wavelength wl_um (MODEL.md)
+inline std::pair<double, double> slab_albedo(std::complex<double> m, double d_um,
+                                             double wl_um) {
+    const double pi = 3.14159265358979323846;
+    double n = m.real(), k = m.imag();
+    double r0 = ((n - 1.0) * (n - 1.0) + k * k) / ((n + 1.0) * (n + 1.0) + k * k),
+           s_e = 0.0587 + 0.8543 * r0 + 0.0870 * r0 * r0,
+           s_i = 1.0 - (0.9413 - 0.8543 * r0 - 0.0870 * r0 * r0) / n,
+           path = (2.0 / 3.0) * (n * n - (1.0 / n) * std::pow(n * n - 1.0, 1.5)), // <D> / D
+           alpha = 4.0 * pi * k / wl_um,
+           theta = std::exp(-alpha * path * d_um),
+           denom = 1.0 - s_i * theta,
+           rho = s_e + (1.0 - s_e) * (1.0 - s_i) * theta / denom,
+           d_theta = -alpha * path * theta,
+           d_rho = (1.0 - s_e) * (1.0 - s_i) / (denom * denom) * d_theta;
+    return { rho, d_rho };
+}
+
 // ------------------------------------------------------------ albedo table
 
-/// Grain populations (MODEL.md): radius r1 (um), and with `two` a second radius
-/// r2 (um) of volume fraction f2
+/// The grains (MODEL.md): radius r1 (um), and with `two` a second radius r2 (um)
+/// of volume fraction f2; for agglomerates their radius (um), fill and mixing rule
+/// (r1 is then the crystallite radius, which does not enter the albedo)
 struct Grains {
     double r1, r2 = 1.0, f2 = 0.0;
     bool two = false;
+    GrainModel model = GrainModel::Sphere;
+    double agglomerate_radius = 1.0, agglomerate_fill = 0.5;
+    Mixing mixing = Mixing::Bruggeman;
 };
 
 /// One wavelength of the albedo table: rho = sum_j (f_j / r_j) Q_sca,j / sum_j
-/// (f_j / r_j) Q_ext,j, its derivatives with respect to r1, r2 and f2 (zero
-/// unless requested), and the efficiencies of each population
+/// (f_j / r_j) Q_ext,j, its derivatives with respect to the fittable grain
+/// parameters (zero unless requested, or for a parameter not in use), and the
+/// efficiencies of each population (agglomerates: of the agglomerate; slab:
+/// Q_ext = 1, Q_sca = rho of the slab)
 struct AlbedoRow {
-    double rho, d_r1 = 0.0, d_r2 = 0.0, d_f2 = 0.0;
+    double rho, d_r1 = 0.0, d_r2 = 0.0, d_f2 = 0.0, d_ra = 0.0, d_fill = 0.0;
     double q_ext1, q_sca1, q_ext2 = 0.0, q_sca2 = 0.0;
 };
-
-/// (Q_ext, Q_sca, dQ_ext/dr, dQ_sca/dr) of spheres of radius r (um) at wl_nm; the
-/// derivatives (only with `derivatives`) by a forward difference in x of relative
-/// step 1e-6 (truncation error ~1e-5 relative, far below what fitting needs).
-/// Throws if the size parameter leaves [1e-3, 200]; `name` is the property.
+/// (Q_ext, Q_sca, dQ_ext/dr, dQ_sca/dr) of Mie spheres of radius r (um) and index m
+/// at wl_nm; the derivatives (only with `derivatives`) by a forward difference in x
+/// of relative step 1e-6 (truncation error ~1e-5 relative, far below what fitting
+/// needs). Throws if the size parameter leaves [1e-3, 200]; `name` is the property.
 inline std::array<double, 4> population_efficiencies(double r, double wl_nm,
                                                      std::complex<double> m,
                                                      const char *name, bool derivatives) {
@@ -320,11 +385,60 @@ inline std::array<double, 4> population_efficiencies(double r, double wl_nm,
     return out;
 }
 
+/// Slab grains need a real index above 1 at every wavelength they are evaluated at
+inline void check_slab_index(std::complex<double> m, double wl_nm) {
+    if (!(m.real() > 1.0))
+        fail("powder: grains = \"slab\" needs the real index of the grain material above 1 "
+             "(Hapke's equivalent slab), but it is n = ", m.real(), " at ", wl_nm,
+             " nm (property \"eta\" or \"material\"); valid range is (1, inf); use "
+             "grains = \"sphere\" for this material");
+}
+
+/// One population of radius r (um): Mie spheres, or for `slab` grains of size
+/// D = 2 r with Q_ext = 1 and Q_sca = rho of Hapke's slab (MODEL.md); as
+/// population_efficiencies (the slab's derivative is analytic)
+inline std::array<double, 4> population(const Grains &g, double r, double wl_nm,
+                                        std::complex<double> m, const char *name,
+                                        bool derivatives) {
+    if (g.model == GrainModel::Slab) {
+        auto [rho, d_rho_d] = slab_albedo(m, 2.0 * r, wl_nm * 1e-3);
+        return { 1.0, rho, 0.0, derivatives ? 2.0 * d_rho_d : 0.0 };
+    }
+    return population_efficiencies(r, wl_nm, m, name, derivatives);
+}
+
+/// Agglomerates (one population): Mie spheres of radius agglomerate_radius and the
+/// effective index of the packed crystallites. d rho / d fill by a difference of
+/// step 1e-6 in the fill (backwards at fill = 1)
+inline AlbedoRow agglomerate_row(const Grains &g, double wl_nm, std::complex<double> m,
+                                 bool derivatives) {
+    AlbedoRow row;
+    double fill = g.agglomerate_fill, ra = g.agglomerate_radius;
+    auto a = population_efficiencies(ra, wl_nm, effective_index(m, fill, g.mixing),
+                                     "agglomerate_radius", derivatives);
+    row.q_ext1 = a[0];
+    row.q_sca1 = a[1];
+    row.rho = a[1] / a[0];
+    if (derivatives) {
+        row.d_ra = (a[3] - row.rho * a[2]) / a[0];
+        const double h = 1e-6;
+        double fill2 = fill + h <= 1.0 ? fill + h : fill - h;
+        auto b = population_efficiencies(ra, wl_nm, effective_index(m, fill2, g.mixing),
+                                         "agglomerate_radius", false);
+        row.d_fill = (b[1] / b[0] - row.rho) / (fill2 - fill);
+    }
+    return row;
+}
+
 /// The albedo table row at one wavelength (nm) for grain index m
 inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> m,
                             bool derivatives) {
+    if (g.model == GrainModel::Agglomerate)
+        return agglomerate_row(g, wl_nm, m, derivatives);
+    if (g.model == GrainModel::Slab)
+        check_slab_index(m, wl_nm);
     AlbedoRow row;
-    auto a = population_efficiencies(g.r1, wl_nm, m, "radius", derivatives);
+    auto a = population(g, g.r1, wl_nm, m, "radius", derivatives);
     double r1 = g.r1, f2 = g.f2, w1 = (1.0 - f2) / r1;
     double ns = w1 * a[1], ne = w1 * a[0];
     double dns_r1 = (1.0 - f2) * (a[3] / r1 - a[1] / (r1 * r1)),
@@ -334,7 +448,7 @@ inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> 
     row.q_sca1 = a[1];
     if (g.two) {
         double r2 = g.r2;
-        auto b = population_efficiencies(r2, wl_nm, m, "radius2", derivatives);
+        auto b = population(g, r2, wl_nm, m, "radius2", derivatives);
         double w2 = f2 / r2;
         ns += w2 * b[1];
         ne += w2 * b[0];
@@ -347,10 +461,26 @@ inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> 
     }
     double rho = ns / ne;
     row.rho = rho;
-    row.d_r1 = (dns_r1 - rho * dne_r1) / ne;
-    row.d_r2 = (dns_r2 - rho * dne_r2) / ne;
-    row.d_f2 = (dns_f - rho * dne_f) / ne;
+    if (derivatives) {
+        row.d_r1 = (dns_r1 - rho * dne_r1) / ne;
+        if (g.two) { // (one population: zero, not a difference of rounding errors)
+            row.d_r2 = (dns_r2 - rho * dne_r2) / ne;
+            row.d_f2 = (dns_f - rho * dne_f) / ne;
+        }
+    }
     return row;
+}
+
+/// Size parameter 2 pi r |n + ik| / lambda of crystallites of radius r (um) at each
+/// wavelength (nm): a mixing rule holds below about 0.5
+inline std::vector<double> crystallite_size_parameters(
+    double r, const std::vector<double> &wl_nm,
+    const std::vector<std::complex<double>> &index) {
+    const double pi = 3.14159265358979323846;
+    std::vector<double> x(wl_nm.size());
+    for (size_t i = 0; i < wl_nm.size(); ++i)
+        x[i] = 2.0 * pi * r * std::abs(index[i]) / (wl_nm[i] * 1e-3);
+    return x;
 }
 
 /// Runs f(i) for i in [0, n) on the calling thread
