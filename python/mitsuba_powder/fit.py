@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .grain_optics import GrainOptics
+from .grain_optics import DEFAULT_FILL, GRAIN_VARIABLES, GrainOptics
 from .measurements import Measurements
 from .model import GRAIN_PROPERTIES, VARIANT, BatchBRF, PowderBRF, batch_variant
 from .optimise import AGREEMENT, MultistartResult, ParamSpec, multistart, sobol_starts
@@ -52,6 +52,8 @@ FITTABLE: dict[str, ParamSpec] = {
     "radius": ParamSpec(3e-3, 3.0, True, 0.05),
     "radius2": ParamSpec(3e-3, 3.0, True, 0.5),
     "fraction2": ParamSpec(0.0, 1.0, False, 0.5),
+    "agglomerate_radius": ParamSpec(1e-2, 3.0, True, 0.15),
+    "agglomerate_fill": ParamSpec(0.05, 1.0, False, DEFAULT_FILL),
     "albedo": ParamSpec(0.0, 1.0, False, 0.8),
     "tau_o": ParamSpec(1e-2, 1e2, True, 2.0 / 3.0),
     "thickness": ParamSpec(1e-2, 1e4, True, 100.0),
@@ -63,8 +65,11 @@ FITTABLE: dict[str, ParamSpec] = {
 #: The plugin's default radius (um), used when neither fitted nor given
 DEFAULT_RADIUS = 0.017
 
-#: Grain properties: they set the albedo through Mie theory (held in the global phase)
-GRAIN_VARIABLES = ("radius", "radius2", "fraction2")
+#: Grain properties (:data:`~mitsuba_powder.grain_optics.GRAIN_VARIABLES`) set the albedo
+#: through the grain model; they are held in the global phase
+
+#: Properties that only configure the grain model (not fitted)
+GRAIN_SETTINGS = ("grains", "mixing")
 
 #: Radii of the log grid the global phase holds the radius at (every Mie branch is tried)
 PROFILE_RADII = 32
@@ -101,8 +106,10 @@ def default_free(data: Measurements, fixed: dict | None = None) -> list[str]:
     (it comes from them)."""
     fixed = fixed or {}
     if len(data.wavelengths()) > 1:
-        return [n for n in DEFAULT_FREE if n not in fixed]
-    given = any(k in fixed for k in GRAIN_VARIABLES + ("albedo",))
+        size = "agglomerate_radius" if fixed.get("grains") == "agglomerate" else "radius"
+        return [size if n == "radius" else n for n in DEFAULT_FREE
+                if (size if n == "radius" else n) not in fixed]
+    given = any(k in fixed for k in GRAIN_VARIABLES + GRAIN_SETTINGS + ("albedo",))
     return [n for n in DEFAULT_FREE_ONE_WAVELENGTH
             if n not in fixed and not (n == "albedo" and given)]
 
@@ -190,10 +197,11 @@ def _check_free(free: list[str], fixed: dict) -> None:
         raise ValueError(f"{unused} has no effect with specular = {specular!r}: fit "
                          f"{'correlation_length' if unused == 'sigma' else 'sigma'} instead, or "
                          f"set specular={'gaussian' if unused == 'sigma' else 'harvey_shack'}")
-    grains = [n for n in GRAIN_VARIABLES if n in free or n in fixed]
+    grains = [n for n in GRAIN_VARIABLES + GRAIN_SETTINGS if n in free or n in fixed]
     if ("albedo" in free or "albedo" in fixed) and grains:
         raise ValueError(f"albedo and {grains} cannot be used together: a given albedo "
                          "replaces the one Mie theory computes from the grains")
+    _check_grain_model(free, fixed)
     if "albedo" in fixed and not isinstance(fixed["albedo"], (int, float)):
         raise ValueError(f"albedo = {fixed['albedo']!r}: a fit takes a fixed albedo as one "
                          "number in [0, 1]")
@@ -202,6 +210,28 @@ def _check_free(free: list[str], fixed: dict) -> None:
         if spec is not None and isinstance(value, (int, float)) and name != "albedo" and not (
                 math.isfinite(value) or name == "thickness"):
             raise ValueError(f"{name} = {value} is not a finite number")
+
+
+def _check_grain_model(free: list[str], fixed: dict) -> None:
+    """The grain properties each model takes (as the plugin's constructor checks them)."""
+    model = fixed.get("grains", "sphere")
+    used = set(free) | set(fixed)
+    agglomerate = ("agglomerate_radius", "agglomerate_fill", "mixing")
+    if model != "agglomerate":
+        extra = [n for n in agglomerate if n in used]
+        if extra:
+            raise ValueError(f"{extra} are used only with grains = 'agglomerate' (grains = "
+                             f"{model!r}); set grains=agglomerate")
+        return
+    if "agglomerate_radius" not in used:
+        raise ValueError("grains = 'agglomerate' needs agglomerate_radius (free or fixed, um)")
+    if "radius" in free:
+        raise ValueError("radius is the crystallite radius with grains = 'agglomerate' and "
+                         "does not enter the albedo: fit agglomerate_radius (and "
+                         "agglomerate_fill) instead")
+    two = [n for n in ("radius2", "fraction2") if n in used]
+    if two:
+        raise ValueError(f"{two} cannot be used with grains = 'agglomerate' (one population)")
 
 
 class Problem:
@@ -289,7 +319,7 @@ class Problem:
         return self._engines[batch]
 
     def _grain_values(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(radius, radius2, fraction2) per parameter set (None where absent)."""
+        """The :data:`GRAIN_VARIABLES` per parameter set (None where absent)."""
         out = []
         for name in GRAIN_VARIABLES:
             if name in self.free:
@@ -303,21 +333,20 @@ class Problem:
         return tuple(out)
 
     def albedo(self, x: np.ndarray, derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """rho (B, W) and, for grains, d rho / d(radius, radius2, fraction2) (B, W, 3)."""
+        """rho (B, W) and, for grains, d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 5)."""
         b, w = len(x), len(self.wavelengths)
         if self.albedo_mode == "fixed":
             return np.full((b, w), float(self.fixed["albedo"])), None
         if self.albedo_mode == "free":
             cols = [j for j, (n, _) in enumerate(self.names) if n == "albedo"]
             return x[:, cols].reshape(b, w), None
-        r1, r2, f2 = self._grain_values(x)
+        grain = self._grain_values(x)
         rho = np.empty((b, w))
-        deriv = np.zeros((b, w, 3))
+        deriv = np.zeros((b, w, len(GRAIN_VARIABLES)))
         need = derivatives and self.grain_derivatives and bool(self.grain_free)
         missing = []
         for i in range(b):
-            key = (float(r1[i]), None if r2 is None else float(r2[i]),
-                   None if f2 is None else float(f2[i]), need)
+            key = tuple(None if v is None else float(v[i]) for v in grain) + (need,)
             if key in self._rho_cache:
                 rho[i], d = self._rho_cache[key]
                 if d is not None:
@@ -326,9 +355,9 @@ class Problem:
                 missing.append((i, key))
         if missing:
             idx = np.array([i for i, _ in missing])
-            values, d = self.grains.albedo(
-                self.wavelengths, r1[idx], None if r2 is None else r2[idx],
-                None if f2 is None else f2[idx], derivatives=need)
+            r1, r2, f2, ra, fill = (None if v is None else v[idx] for v in grain)
+            values, d = self.grains.albedo(self.wavelengths, r1, r2, f2, derivatives=need,
+                                           agglomerate_radius=ra, agglomerate_fill=fill)
             for k, (i, key) in enumerate(missing):
                 rho[i] = values[k]
                 if d is not None:
@@ -381,13 +410,14 @@ class Problem:
 
 
 def _starts(problem: Problem, count: int, seed: int) -> np.ndarray:
-    """Sobol starts (the default start first); with the radius free, the radius runs over a
-    log grid of its whole range (:data:`PROFILE_RADII` values, each with the same number of
-    starts)."""
+    """Sobol starts (the default start first); with the radius (or the agglomerate radius)
+    free, it runs over a log grid of its whole range (:data:`PROFILE_RADII` values, each with
+    the same number of starts): every branch of rho(r) is tried."""
     y0 = sobol_starts(problem.lower, problem.upper, count, seed)
-    if "radius" in problem.free:
-        j = problem.index("radius")
-        spec = FITTABLE["radius"]
+    size = next((n for n in ("radius", "agglomerate_radius") if n in problem.free), None)
+    if size is not None:
+        j = problem.index(size)
+        spec = FITTABLE[size]
         grid = np.linspace(spec.to_y(spec.lower), spec.to_y(spec.upper),
                            min(PROFILE_RADII, count))
         y0[:, j] = grid[np.arange(count) % len(grid)]

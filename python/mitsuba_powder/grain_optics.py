@@ -9,9 +9,8 @@ wavelengths without building a plugin instance (or switching Mitsuba variants) f
 - the complex index at each wavelength: linear interpolation of the material's table
   (``material`` = ``hematite`` | ``magnetite`` | a refractiveindex.info YAML file), or constant
   ``eta``/``k`` numbers;
-- ``rho = sum_j (f_j / r_j) Q_sca,j / sum_j (f_j / r_j) Q_ext,j`` (MODEL.md, one or two
-  populations), its derivatives by the same forward difference as the plugin (relative step
-  1e-6 in the size parameter);
+- rho and its derivatives from the plugin's albedo table (``_optics.albedo_table``: MODEL.md's
+  grain models ``sphere``, ``agglomerate`` and ``slab``, one or two populations);
 - ``tau_o`` from the Fresnel reflectance at Re(index).
 
 ``tests/test_fit.py`` checks every value against the plugin's ``eval_attribute``.
@@ -29,11 +28,18 @@ from . import _optics
 
 _DATA = Path(__file__).resolve().parent / "data" / "optical_constants"
 
-#: Size parameters the plugin accepts (2 pi r / lambda)
-SIZE_PARAMETER_RANGE = (1e-3, 200.0)
+#: Grain models of the plugin's ``grains`` property (MODEL.md, "Grain models")
+GRAIN_MODELS = ("sphere", "agglomerate", "slab")
 
-#: Relative step of the forward difference of the Mie efficiencies (as in the plugin)
-STEP = 1e-6
+#: Effective-medium rules of the ``mixing`` property
+MIXING_RULES = ("bruggeman", "maxwell_garnett")
+
+#: The fittable grain properties, in the order of the derivative columns of
+#: :meth:`GrainOptics.albedo` (and of ``_optics.albedo_table``)
+GRAIN_VARIABLES = ("radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill")
+
+#: The plugin's default ``agglomerate_fill``
+DEFAULT_FILL = 0.5
 
 
 class GrainOptics:
@@ -41,14 +47,23 @@ class GrainOptics:
 
     Args:
         properties: plugin properties; ``material`` or ``eta`` and ``k`` (numbers) are used,
-            the default is hematite, as in the plugin.
+            the default is hematite, as in the plugin; ``grains`` and ``mixing`` (defaults
+            ``sphere`` and ``bruggeman``).
 
     Raises:
         ValueError: an unknown material, ``eta`` without ``k``, both a material and ``eta``,
-            or ``eta``/``k`` that are not numbers in range.
+            ``eta``/``k`` that are not numbers in range, or an unknown grain model or mixing
+            rule.
     """
 
     def __init__(self, properties: dict):
+        self.grains = properties.get("grains", "sphere")
+        self.mixing = properties.get("mixing", "bruggeman")
+        for name, value, valid in (("grains", self.grains, GRAIN_MODELS),
+                                   ("mixing", self.mixing, MIXING_RULES)):
+            if value not in valid:
+                raise ValueError(f"{name} = {value!r} is not valid; valid values are "
+                                 f"{', '.join(valid)}")
         has_eta, has_k = "eta" in properties, "k" in properties
         if has_eta or has_k:
             if not (has_eta and has_k):
@@ -106,69 +121,59 @@ class GrainOptics:
         return np.array([_optics.tau_o_fresnel(float(m.real))
                          for m in self.index(wavelengths_nm)])
 
-    @staticmethod
-    def _efficiencies(m: complex, r: float, wl_nm: float, name: str, derivative: bool
-                      ) -> tuple[float, float, float, float]:
-        """(Q_ext, Q_sca, dQ_ext/dr, dQ_sca/dr) of a sphere of radius r (um)."""
-        x = 2.0 * math.pi * r / (wl_nm * 1e-3)
-        lo, hi = SIZE_PARAMETER_RANGE
-        if not (lo * (1.0 - 1e-6) <= x <= hi * (1.0 + 1e-6)):
-            raise ValueError(f"{name} = {r:g} um gives the size parameter 2 pi r / lambda = "
-                             f"{x:g} at {wl_nm:g} nm; valid range is [{lo:g}, {hi:g}]")
-        q_ext, q_sca = _optics.mie_efficiencies(m, x)
-        if not q_ext > 0.0:
-            raise ValueError(f"grains of index {m} do not interact with light (Q_ext = 0)")
-        if not derivative:
-            return q_ext, q_sca, 0.0, 0.0
-        qe, qs = _optics.mie_efficiencies(m, x * (1.0 + STEP))
-        s = 1.0 / (STEP * r)
-        return q_ext, q_sca, (qe - q_ext) * s, (qs - q_sca) * s
-
     def albedo(self, wavelengths_nm: np.ndarray, radius: np.ndarray,
                radius2: np.ndarray | None = None, fraction2: np.ndarray | None = None,
-               derivatives: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+               derivatives: bool = False,
+               agglomerate_radius: np.ndarray | None = None,
+               agglomerate_fill: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray | None]:
         """rho (B, W) of B grain sets at W wavelengths and, with ``derivatives``,
-        d rho / d(radius, radius2, fraction2) (B, W, 3) (zero columns for one population).
+        d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 5) (zero columns for parameters not in use).
+
+        The grain model and mixing rule are this instance's (``grains``, ``mixing``).
 
         Args:
             wavelengths_nm: (W,) nm.
-            radius: (B,) um. radius2, fraction2: (B,) or None (one population).
+            radius: (B,) um (the crystallite radius for agglomerates: it does not enter rho).
+            radius2, fraction2: (B,) or None (one population).
+            agglomerate_radius: (B,) um, required with ``grains = "agglomerate"``.
+            agglomerate_fill: (B,) or None (the plugin's default, 0.5).
 
         Raises:
-            ValueError: a size parameter outside the plugin's range (naming the property).
+            ValueError: a size parameter outside the plugin's range, a slab of index <= 1, or
+                a parameter the grain model does not take (naming the property).
         """
-        wls = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
+        wls = [float(w) for w in np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))]
         radius = np.atleast_1d(np.asarray(radius, dtype=float))
         b = len(radius)
-        two = radius2 is not None
-        if two and fraction2 is None:
+
+        def per_set(values) -> np.ndarray | None:
+            if values is None:
+                return None
+            return np.broadcast_to(np.asarray(values, dtype=float), (b,))
+
+        r2, f2 = per_set(radius2), per_set(fraction2)
+        ra = per_set(agglomerate_radius)
+        fill = per_set(agglomerate_fill)
+        if (r2 is None) != (f2 is None):
             raise ValueError("a second population needs radius2 and fraction2")
-        r2 = np.broadcast_to(np.asarray(radius2, dtype=float), (b,)) if two else None
-        f2 = np.broadcast_to(np.asarray(fraction2, dtype=float), (b,)) if two else np.zeros(b)
-        index = self.index(wls)
+        if self.grains == "agglomerate" and ra is None:
+            raise ValueError('grains = "agglomerate" needs agglomerate_radius (um); valid '
+                             "range is (0, inf)")
+        index = [complex(m) for m in self.index(wls)]
         rho = np.empty((b, len(wls)))
-        deriv = np.zeros((b, len(wls), 3)) if derivatives else None
+        deriv = np.zeros((b, len(wls), len(GRAIN_VARIABLES))) if derivatives else None
         for i in range(b):
-            r1 = float(radius[i])
-            for j, (wl, m) in enumerate(zip(wls, index)):
-                qe1, qs1, dqe1, dqs1 = self._efficiencies(m, r1, wl, "radius", derivatives)
-                w1 = (1.0 - f2[i]) / r1
-                ns, ne = w1 * qs1, w1 * qe1
-                dns = [(1.0 - f2[i]) * (dqs1 / r1 - qs1 / r1**2), 0.0, -qs1 / r1]
-                dne = [(1.0 - f2[i]) * (dqe1 / r1 - qe1 / r1**2), 0.0, -qe1 / r1]
-                if two:
-                    rr = float(r2[i])
-                    qe2, qs2, dqe2, dqs2 = self._efficiencies(m, rr, wl, "radius2",
-                                                              derivatives)
-                    w2 = f2[i] / rr
-                    ns += w2 * qs2
-                    ne += w2 * qe2
-                    dns[1] = f2[i] * (dqs2 / rr - qs2 / rr**2)
-                    dne[1] = f2[i] * (dqe2 / rr - qe2 / rr**2)
-                    dns[2] += qs2 / rr
-                    dne[2] += qe2 / rr
-                rho[i, j] = ns / ne
-                if derivatives:
-                    for c in range(3 if two else 1):
-                        deriv[i, j, c] = (dns[c] * ne - ns * dne[c]) / (ne * ne)
+            try:
+                values, d = _optics.albedo_table(
+                    self.grains, wls, index, float(radius[i]),
+                    None if r2 is None else float(r2[i]), None if f2 is None else float(f2[i]),
+                    None if ra is None else float(ra[i]),
+                    DEFAULT_FILL if fill is None else float(fill[i]), self.mixing,
+                    derivatives)
+            except RuntimeError as error:  # the plugin's message names the property
+                raise ValueError(str(error).removeprefix("powder: ")) from None
+            rho[i] = values
+            if derivatives:
+                deriv[i] = d
         return rho, deriv

@@ -80,7 +80,8 @@ _KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
 
 #: Plugin properties that describe the grains: :class:`BatchBRF` takes the albedo and tau_o
 #: they give as numbers (see :mod:`mitsuba_powder.grain_optics`)
-GRAIN_PROPERTIES = ("radius", "radius2", "fraction2", "material", "eta", "k")
+GRAIN_PROPERTIES = ("radius", "radius2", "fraction2", "grains", "agglomerate_radius",
+                    "agglomerate_fill", "mixing", "material", "eta", "k")
 
 
 def _forward_grad(source, output):
