@@ -26,6 +26,8 @@ def test_showcase_script_small(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     meta = json.loads((tmp_path / "showcase.json").read_text())
     assert meta["variant"] == "llvm_ad_spectral" and meta["width"] == 96
+    assert [r["scene"] for r in meta["renders"]] == ["scenes/showcase.xml",
+                                                     "scenes/showcase_grains.xml"]
     assert (tmp_path / "showcase.png").stat().st_size > 5000
     assert not (tmp_path / "showcase_raw.exr").exists()
 
@@ -37,3 +39,13 @@ def test_energy_grid_script(tmp_path):
     conserving = proc.stdout.split("energy = conserving")[1]
     rows = [line for line in conserving.splitlines() if line.startswith("| 0.001 ")]
     assert rows and all(float(x) <= 1.002 for x in rows[0].strip("|").split("|")[1:]), rows
+
+
+def test_grain_colour_script_quick(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "grain_colour.py"),
+                           "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    table = (tmp_path / "grain_colour_table.md").read_text()
+    assert "| sphere | 0.01 |" in table and "| slab |" in table and "| agglomerate, fill" in table
+    assert (tmp_path / "figures" / "grain_colour.png").stat().st_size > 5000

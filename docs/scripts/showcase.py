@@ -1,8 +1,12 @@
-"""Render the showcase (the paper's seven hematite samples) and write the labelled figure.
+"""Render the showcase (the paper's seven hematite samples) twice and write the labelled figure:
+isolated Mie spheres of the Table 2 radii (scenes/showcase.xml) above, a grain model per sample
+argued from the paper's description (scenes/showcase_grains.xml) below.
 
-    python docs/scripts/showcase.py [--spp 256] [--variant llvm_ad_spectral]
+    python docs/scripts/showcase.py [--spp 256] [--variant llvm_ad_spectral] [-D NAME=VALUE]
 
 Writes docs/figures/showcase.png (labelled) and docs/figures/showcase.json (time, variant).
+``-D`` sets a scene parameter of both scenes (e.g. ``-D fraction2=0.3``, ``-D
+agglomerate_fill=0.5``; the assumptions the paper does not fix are such parameters).
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import time
 from pathlib import Path
 
@@ -18,9 +23,17 @@ import numpy as np
 from mitsuba_powder.render import render_scene
 
 ROOT = Path(__file__).resolve().parents[2]
-SCENE = ROOT / "scenes" / "showcase.xml"
-SAMPLES = ["1: 17 nm", "2: 16 nm", "3: 16 nm", "4: 15 nm", "5: 83 + 46 nm", "6: 687 + 43 nm",
-           "7: 2222 + 49 nm"]
+#: (title, scene, label per sample)
+SCENES = [
+    ("isolated Mie spheres, Table 2 radii (scenes/showcase.xml)",
+     ROOT / "scenes" / "showcase.xml",
+     ["1: 17 nm", "2: 16 nm", "3: 16 nm", "4: 15 nm", "5: 83 + 46 nm", "6: 687 + 43 nm",
+      "7: 2222 + 49 nm"]),
+    ("grain model per sample (scenes/showcase_grains.xml)",
+     ROOT / "scenes" / "showcase_grains.xml",
+     ["1: aggl. of 17 nm", "2: aggl. of 16 nm", "3: aggl. of 16 nm", "4: aggl. of 15 nm",
+      "5: 83 + 46 nm", "6: aggl. 687 nm", "7: aggl. 2222 nm"]),
+]
 
 
 def dish_columns(width: int) -> list[float]:
@@ -46,6 +59,8 @@ def main() -> None:
     parser.add_argument("--variant", default="llvm_ad_spectral")
     parser.add_argument("--res", default="960x300", help="WIDTHxHEIGHT")
     parser.add_argument("--out", default=str(ROOT / "docs" / "figures"))
+    parser.add_argument("-D", dest="defines", action="append", default=[],
+                        metavar="NAME=VALUE", help="a scene parameter of both scenes")
     args = parser.parse_args()
     try:
         width, height = (int(v) for v in args.res.split("x"))
@@ -53,32 +68,53 @@ def main() -> None:
         parser.error(f"--res {args.res!r}: expected WIDTHxHEIGHT in pixels, e.g. 960x300")
     if width < 1 or height < 1 or args.spp < 1:
         parser.error(f"--res {args.res} and --spp {args.spp} must be positive")
+    defines = {"res_x": str(width), "res_y": str(height)}
+    for item in args.defines:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            parser.error(f"-D {item!r}: expected NAME=VALUE")
+        defines[name] = value
+    declared = set()
+    for _title, scene, _labels in SCENES:
+        declared |= set(re.findall(r'<default name="(\w+)"', scene.read_text()))
+    unknown = sorted(set(defines) - declared)
+    if unknown:
+        parser.error(f"-D {unknown}: not a parameter of the showcase scenes; they declare "
+                     f"{', '.join(sorted(declared))}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    exr = out / "showcase_raw.exr"
-    result = render_scene(SCENE, exr, variant=args.variant, spp=args.spp,
-                          defines={"res_x": str(width), "res_y": str(height)})
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import mitsuba as mi
 
-    img = np.array(mi.Bitmap(str(exr)).convert(mi.Bitmap.PixelFormat.RGB,
-                                               mi.Struct.Type.Float32, srgb_gamma=True))
-    fig, ax = plt.subplots(figsize=(width / 100, height / 100 + 0.6), dpi=100)
-    ax.imshow(np.clip(img, 0, 1))
-    for col, label in zip(dish_columns(width), SAMPLES, strict=True):
-        ax.text(col, height * 0.93, label, ha="center", va="top", fontsize=8, color="w")
-    ax.set_axis_off()
-    ax.set_title(f"Hematite samples 1-7 (Gerardin et al. 2023, Table 2 radii); {result.variant},"
-                 f" {args.spp} spp, {width}x{height}, {result.seconds:.1f} s", fontsize=9)
+    fig, axes = plt.subplots(len(SCENES), 1, figsize=(width / 100, len(SCENES) *
+                                                      (height / 100 + 0.45)), dpi=100)
+    renders = []
+    for ax, (title, scene, labels) in zip(axes, SCENES, strict=True):
+        exr = out / "showcase_raw.exr"
+        declared = set(re.findall(r'<default name="(\w+)"', scene.read_text()))
+        result = render_scene(scene, exr, variant=args.variant, spp=args.spp,
+                              defines={k: v for k, v in defines.items() if k in declared})
+        img = np.array(mi.Bitmap(str(exr)).convert(mi.Bitmap.PixelFormat.RGB,
+                                                   mi.Struct.Type.Float32, srgb_gamma=True))
+        exr.unlink()
+        ax.imshow(np.clip(img, 0, 1))
+        for col, label in zip(dish_columns(width), labels, strict=True):
+            ax.text(col, height * 0.93, label, ha="center", va="top", fontsize=8, color="w")
+        ax.set_axis_off()
+        ax.set_title(f"{title}; {result.variant}, {args.spp} spp, {width}x{height}, "
+                     f"{result.seconds:.1f} s", fontsize=9)
+        renders.append({"scene": str(scene.relative_to(ROOT)),
+                        "seconds_load_and_render": result.seconds})
+    fig.suptitle("Hematite samples 1-7 of Gerardin et al. (2023)", fontsize=10)
     fig.savefig(out / "showcase.png", bbox_inches="tight")
     plt.close(fig)
-    exr.unlink()
-    meta = {"variant": result.variant, "spp": args.spp, "width": width, "height": height,
-            "seconds_load_and_render": result.seconds,
-            "machine": f"{platform.machine()}, {platform.system()}", "date": time.strftime("%F")}
+    meta = {"variant": args.variant, "spp": args.spp, "width": width, "height": height,
+            "defines": {k: v for k, v in defines.items() if not k.startswith("res_")},
+            "renders": renders, "machine": f"{platform.machine()}, {platform.system()}",
+            "date": time.strftime("%F")}
     (out / "showcase.json").write_text(json.dumps(meta, indent=1))
     print(meta)
 
