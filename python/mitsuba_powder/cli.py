@@ -53,11 +53,24 @@ def _cmd_colour(args: argparse.Namespace) -> int:
 
     if (args.radius2 is None) != (args.fraction2 is None):
         raise ValueError("give both --radius2 and --fraction2, or neither")
+    model = {}
+    if args.grains != "sphere":
+        model["grains"] = args.grains
+    if args.agglomerate_radius is not None:
+        model["agglomerate_radius"] = args.agglomerate_radius
+    if args.agglomerate_fill is not None:
+        model["agglomerate_fill"] = args.agglomerate_fill
+    if args.mixing is not None:
+        model["mixing"] = args.mixing
     c = powder_colour(args.radius, radius2=args.radius2, fraction2=args.fraction2,
-                      material=args.material, samples=args.samples)
-    grains = f"radius {args.radius:g} um"
+                      material=args.material, samples=args.samples, **model)
+    grains = f"{args.grains} grains, radius {args.radius:g} um"
     if args.radius2 is not None:
         grains += f" + radius2 {args.radius2:g} um (volume fraction {args.fraction2:g})"
+    if args.grains == "agglomerate":
+        grains += (f" (crystallites) in agglomerates of radius {args.agglomerate_radius:g} um, "
+                   f"fill {c.properties.get('agglomerate_fill', 0.5):g}, "
+                   f"{c.properties.get('mixing', 'bruggeman')}")
     print(f"{args.material}, {grains}; plugin defaults otherwise")
     print(f"{'nm':>5s} {'albedo':>8s} {'Q_ext':>9s} {'Q_sca':>9s} {'tau_o':>7s} {'R(0/d)':>8s}")
     step = max(1, len(c.wavelengths_nm) // 12)
@@ -366,6 +379,23 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare_maps(args: argparse.Namespace) -> int:
+    from .rti import load_capture
+    from .rti_compare import compare, write_comparison
+
+    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
+    k, h, w, c = capture.images.shape
+    print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
+          f"{capture.bit_depth} bit, encoding {capture.encoding}")
+    comp = compare(capture, models, phase=args.phase)
+    path = write_comparison(comp, args.out, error_images=not args.no_error_images)
+    print(path.read_text())
+    print(f"wrote {path}, compare.json" + ("" if args.no_error_images else
+                                            " and error_<protocol>_<model>.png"))
+    return 0
+
+
 def _parse_define(text: str) -> tuple[str, str]:
     if "=" not in text:
         raise SystemExit(f"mitsuba-powder: -D expects NAME=VALUE, got {text!r}")
@@ -419,6 +449,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="volume fraction of the second population")
     p.add_argument("--material", default="hematite",
                    help="hematite, magnetite or a refractiveindex.info YAML file")
+    p.add_argument("--grains", default="sphere", choices=["sphere", "agglomerate", "slab"],
+                   help="grain model (docs/powder.md, Grain models)")
+    p.add_argument("--agglomerate-radius", type=float, default=None,
+                   help="agglomerate radius, um (--grains agglomerate)")
+    p.add_argument("--agglomerate-fill", type=float, default=None,
+                   help="volume fill of crystallites in an agglomerate (default 0.5)")
+    p.add_argument("--mixing", default=None, choices=["bruggeman", "maxwell_garnett"],
+                   help="effective-medium rule of an agglomerate (default bruggeman)")
     p.add_argument("--samples", type=int, default=4096, help="quadrature nodes")
     p.set_defaults(func=_cmd_colour)
 
@@ -529,6 +567,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="photo_compare",
                    help="output folder (photo_comparison.json, delta_e.png, side_by_side.png)")
     p.set_defaults(func=_cmd_compare_photo)
+
+    p = sub.add_parser("compare-maps", help="held-out-light error of per-pixel models (PTM, "
+                                            "HSH, Lambertian) on an RTI capture")
+    p.add_argument("capture", help="the capture's .lp file (first line the count, then "
+                                   "'filename lx ly lz'); images beside it")
+    p.add_argument("--out", required=True,
+                   help="output folder (compare.md, compare.json, error maps)")
+    p.add_argument("--encoding", choices=("srgb", "linear"), default="srgb",
+                   help="srgb: file values are sRGB-encoded (linearised on read); linear: "
+                        "value / full scale is linear (default srgb)")
+    p.add_argument("--mask", default=None, help="mask image (PNG): pixels above half scale "
+                                                "are scored")
+    p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
+                   help="comma-separated: ptm, hsh, lambertian, lambertian_clamped")
+    p.add_argument("--phase", type=int, default=4,
+                   help="interpolation protocol: hold out the lights k %% 5 == PHASE (.lp "
+                        "order from 0; default 4)")
+    p.add_argument("--no-error-images", action="store_true",
+                   help="do not write the per-pixel error maps (PNG)")
+    p.set_defaults(func=_cmd_compare_maps)
     return parser
 
 

@@ -1,0 +1,449 @@
+"""RTI captures on disk: light-position (``.lp``) files and their images, read and written.
+
+A Reflectance Transformation Imaging (RTI) capture is a fixed camera and K photographs, each
+lit from one known direction, listed in an ``.lp`` file:
+
+.. code-block:: text
+
+    48
+    image00.jpg 0.536425 0.831366 0.145184
+    image01.jpg 0.26473 0.942088 0.205887
+    ...
+
+* line 1: the number of lights K (an integer; trailing blanks allowed);
+* then one line per light: ``filename lx ly lz``, the file relative to the ``.lp`` file's
+  folder (or absolute), and the direction towards the light in the camera frame: x to the
+  image's right, y to its top, z towards the camera. Directions are normalised on read; their
+  length carries no meaning (some tools write unit vectors, others positions).
+* blank lines are skipped anywhere (real files end with some: RealRTI items 3, 4, 5, 8, ...).
+  There is no comment syntax: a ``#`` line is a malformed line.
+* a file name may contain spaces: the last three fields are the direction, the rest is the name.
+
+Checks (each a ``ValueError`` naming the file, the line number, the value and what was
+expected): the count line, a line without a name and three numbers, a field that is not a
+finite number, a zero vector, a light more than :data:`MIN_LZ_DEFAULT` below the surface plane
+(``lz < -0.1`` after normalising, about 5.7 degrees below the horizon: dome calibrations put
+near-horizon lights a little below it, e.g. RealRTI item 7's ``image16.jpg`` at
+``lz = -0.0012``, while a capture with all z negative is a sign convention error), a repeated
+file name, and fewer or more light lines than the count.
+
+Images: PNG (8 or 16 bit), JPEG (8 bit) or OpenEXR (half or float), read and written with
+Mitsuba's ``mi.Bitmap`` (in the caller's variant, else ``scalar_rgb``). ``mi.Bitmap`` tags
+every PNG/JPEG it reads ``srgb_gamma = True`` whatever the file says and returns the stored
+integers untouched, so this module does the transfer function itself, explicitly:
+
+* ``encoding="srgb"``: the file's values are sRGB-encoded (IEC 61966-2-1); they are divided
+  by 255 (65535 for 16 bit) and linearised on read, and linear values are re-encoded on write.
+* ``encoding="linear"``: the file's values divided by 255 (65535) are taken as linear and
+  written back as such.
+
+The encoding applies to EXR files too (their values are normally linear: use ``linear``).
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import colour
+import numpy as np
+
+__all__ = ["Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
+           "read_image", "read_lp", "read_mask", "write_images", "write_lp"]
+
+#: the transfer functions between file values and linear values
+ENCODINGS = ("srgb", "linear")
+#: the lowest z accepted for a normalised light direction (about 5.7 degrees below the horizon)
+MIN_LZ_DEFAULT = -0.1
+#: file formats by suffix
+_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
+
+
+@dataclass
+class Capture:
+    """An RTI capture in memory.
+
+    Attributes:
+        images: linear values, float32 (K, H, W, C), C = 1 (grey) or 3 (RGB); 1.0 is the
+            file's full scale (255, 65535, or 1.0 for EXR); alpha channels are dropped.
+        directions: unit vectors towards the lights, float64 (K, 3), camera frame (x right,
+            y up in the image, z towards the camera).
+        names: the image file names as written in the ``.lp`` file, in its order.
+        encoding: ``srgb`` or ``linear`` (see the module docstring).
+        file_format: ``png``, ``jpeg`` or ``exr`` (the source images').
+        bit_depth: bits per component of the source: 8 or 16 (PNG, JPEG), 16 or 32 (EXR half
+            or float).
+        mask: pixels to use, bool (H, W), or None (all).
+        lp_path: the ``.lp`` file read (None for a capture built in memory).
+    """
+
+    images: np.ndarray
+    directions: np.ndarray
+    names: list[str]
+    encoding: str = "srgb"
+    file_format: str = "png"
+    bit_depth: int = 8
+    mask: np.ndarray | None = None
+    lp_path: Path | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height, width) in pixels."""
+        return int(self.images.shape[1]), int(self.images.shape[2])
+
+    @property
+    def channels(self) -> int:
+        """Channels per pixel (1 or 3)."""
+        return int(self.images.shape[3])
+
+
+def _check_encoding(encoding: str) -> None:
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding = {encoding!r} is not valid; choose one of {ENCODINGS}")
+
+
+def decode(values: np.ndarray, encoding: str) -> np.ndarray:
+    """Linear values of file values in [0, 1] (float32).
+
+    Args:
+        values: file values, 1.0 = full scale.
+        encoding: ``srgb`` (IEC 61966-2-1 decoding, through colour-science) or ``linear``
+            (unchanged).
+    """
+    _check_encoding(encoding)
+    if encoding == "linear":
+        return np.asarray(values, dtype=np.float32)
+    return np.asarray(colour.cctf_decoding(np.asarray(values, dtype=np.float64),
+                                           function="sRGB"), dtype=np.float32)
+
+
+def encode(values: np.ndarray, encoding: str) -> np.ndarray:
+    """File values of linear values (float64), the inverse of :func:`decode`.
+
+    Negative linear values are encoded with the sign kept (``-encode(-x)``), so that the
+    encoding of an unclamped model prediction is defined; writing to an integer format clips
+    to [0, 1] afterwards (:func:`write_images`).
+    """
+    _check_encoding(encoding)
+    x = np.asarray(values, dtype=np.float64)
+    if encoding == "linear":
+        return x
+    return np.sign(x) * colour.cctf_encoding(np.abs(x), function="sRGB")
+
+
+def _parse_lp_text(text: str, where: str, min_lz: float
+                   ) -> tuple[list[str], np.ndarray, list[int]]:
+    """(names, unit directions, line numbers) of the text of an .lp file ``where``."""
+    lines = text.splitlines()
+    numbered = [(i, ln.strip()) for i, ln in enumerate(lines, start=1) if ln.strip()]
+    if not numbered:
+        raise ValueError(f"{where}: empty file; expected the number of lights on line 1, then "
+                         "'filename lx ly lz' per light")
+    first_no, first = numbered[0]
+    try:
+        count = int(first)
+    except ValueError:
+        raise ValueError(f"{where}, line {first_no}: {first!r} is not the number of lights "
+                         "(an integer >= 1)") from None
+    if count < 1:
+        raise ValueError(f"{where}, line {first_no}: number of lights {count}; expected >= 1")
+    names: list[str] = []
+    dirs: list[tuple[float, float, float]] = []
+    numbers: list[int] = []
+    seen: dict[str, int] = {}
+    for lineno, line in numbered[1:]:
+        fields = line.split()
+        if len(fields) < 4:
+            raise ValueError(f"{where}, line {lineno}: {line!r} has {len(fields)} fields; "
+                             "expected 'filename lx ly lz' (a name and 3 numbers)")
+        name = line.rsplit(maxsplit=3)[0]
+        vec = []
+        for col, text_value in enumerate(fields[-3:]):
+            axis = "xyz"[col]
+            try:
+                v = float(text_value)
+            except ValueError:
+                raise ValueError(f"{where}, line {lineno}: l{axis} = {text_value!r} is not a "
+                                 "number; expected 'filename lx ly lz'") from None
+            if not math.isfinite(v):
+                raise ValueError(f"{where}, line {lineno}: l{axis} = {text_value!r} is not "
+                                 "finite")
+            vec.append(v)
+        norm = math.sqrt(sum(v * v for v in vec))
+        if norm == 0.0:
+            raise ValueError(f"{where}, line {lineno}: light direction ({fields[-3]}, "
+                             f"{fields[-2]}, {fields[-1]}) is the zero vector; expected a "
+                             "non-zero vector towards the light")
+        unit = tuple(v / norm for v in vec)
+        if unit[2] < min_lz:
+            raise ValueError(f"{where}, line {lineno}: light direction ({fields[-3]}, "
+                             f"{fields[-2]}, {fields[-1]}) has normalised lz = {unit[2]:.4g} < "
+                             f"{min_lz:g} (more than {math.degrees(math.asin(-min_lz)):.1f} "
+                             "degrees below the surface plane); z points towards the camera")
+        if name in seen:
+            raise ValueError(f"{where}, line {lineno}: file name {name!r} repeats line "
+                             f"{seen[name]}; expected one line per image")
+        seen[name] = lineno
+        names.append(name)
+        dirs.append(unit)
+        numbers.append(lineno)
+    if len(names) != count:
+        last = numbered[-1][0]
+        raise ValueError(f"{where}, line {first_no}: the count says {count} lights but the file "
+                         f"has {len(names)} light lines (up to line {last})")
+    return names, np.array(dirs, dtype=np.float64), numbers
+
+
+def read_lp(path: str | Path, min_lz: float = MIN_LZ_DEFAULT
+            ) -> tuple[list[str], np.ndarray]:
+    """File names and unit light directions of an ``.lp`` file (format: module docstring).
+
+    Args:
+        path: the ``.lp`` file.
+        min_lz: the lowest z accepted for a normalised direction (default -0.1).
+
+    Returns:
+        (names, directions): K names as written; float64 (K, 3) unit vectors towards the lights
+        (x to the image's right, y to its top, z towards the camera).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: a malformed file (the message names the file and line).
+    """
+    names, dirs, _ = _read_lp_lines(path, min_lz)
+    return names, dirs
+
+
+def _read_lp_lines(path: str | Path, min_lz: float) -> tuple[list[str], np.ndarray, list[int]]:
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"light-position file {p} does not exist")
+    return _parse_lp_text(p.read_text(encoding="utf-8", errors="replace"), str(p), min_lz)
+
+
+def write_lp(path: str | Path, names: Sequence[str], directions: np.ndarray) -> Path:
+    """Write an ``.lp`` file: the count, then ``name lx ly lz`` per light (9 decimals).
+
+    Args:
+        path: output file.
+        names: K image file names (relative to the ``.lp`` file's folder).
+        directions: (K, 3) vectors towards the lights (written as given).
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] != len(names):
+        raise ValueError(f"directions of shape {d.shape}: expected ({len(names)}, 3), one per "
+                         "name")
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    lines = [str(len(names))] + [f"{n} {x:.9f} {y:.9f} {z:.9f}" for n, (x, y, z) in
+                                 zip(names, d)]
+    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return p
+
+
+def _bitmap(path: Path):
+    """(raw array (H, W, C), file format, bit depth) of an image file, through mi.Bitmap."""
+    import mitsuba as mi
+
+    from .variants import use_variant
+
+    with use_variant(mi.variant() or "scalar_rgb"):
+        bmp = mi.Bitmap(str(path))
+        fmt = bmp.component_format()
+        pixel = bmp.pixel_format()
+        arr = np.array(bmp)
+    depth = {mi.Struct.Type.UInt8: 8, mi.Struct.Type.UInt16: 16, mi.Struct.Type.Float16: 16,
+             mi.Struct.Type.Float32: 32}.get(fmt)
+    if depth is None:
+        raise ValueError(f"image {path}: component format {fmt} is not supported (8 or 16 bit "
+                         "integer, half or float)")
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    keep = {mi.Bitmap.PixelFormat.Y: 1, mi.Bitmap.PixelFormat.YA: 1,
+            mi.Bitmap.PixelFormat.RGB: 3, mi.Bitmap.PixelFormat.RGBA: 3}.get(pixel)
+    if keep is None:
+        raise ValueError(f"image {path}: pixel format {pixel} is not supported (Y, YA, RGB, "
+                         "RGBA)")
+    return arr[..., :keep], depth
+
+
+def read_image(path: str | Path, encoding: str = "srgb") -> tuple[np.ndarray, str, int]:
+    """Linear values of one image file.
+
+    Args:
+        path: ``.png`` (8/16 bit), ``.jpg``/``.jpeg`` or ``.exr``.
+        encoding: ``srgb`` or ``linear`` (module docstring).
+
+    Returns:
+        (values float32 (H, W, C) with 1.0 = full scale, file format, bit depth).
+    """
+    _check_encoding(encoding)
+    p = Path(path)
+    file_format = _FORMATS.get(p.suffix.lower())
+    if file_format is None:
+        raise ValueError(f"image {p}: format {p.suffix!r} is not supported; use .png, .jpg or "
+                         ".exr")
+    if not p.is_file():
+        raise FileNotFoundError(f"image {p} does not exist")
+    raw, depth = _bitmap(p)
+    if raw.dtype == np.uint8:
+        values = raw.astype(np.float32) / np.float32(255.0)
+    elif raw.dtype == np.uint16:
+        values = raw.astype(np.float32) / np.float32(65535.0)
+    else:
+        values = raw.astype(np.float32)
+    return decode(values, encoding), file_format, depth
+
+
+def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """A pixel mask (H, W) bool from an image: True where the first channel is above half
+    its full scale (PNG: > 127 of 255).
+
+    Args:
+        path: mask image (PNG usually).
+        shape: (H, W) it must have, or None.
+    """
+    values, _, _ = read_image(path, "linear")
+    mask = values[..., 0] > 0.5
+    if shape is not None and mask.shape != tuple(shape):
+        raise ValueError(f"mask {path}: {mask.shape[1]} x {mask.shape[0]} pixels; the capture's "
+                         f"images are {shape[1]} x {shape[0]}")
+    if not mask.any():
+        raise ValueError(f"mask {path}: no pixel selected (none above half scale)")
+    return mask
+
+
+def load_capture(lp_path: str | Path, encoding: str = "srgb",
+                 mask: str | Path | np.ndarray | None = None,
+                 min_lz: float = MIN_LZ_DEFAULT) -> Capture:
+    """Read an RTI capture: the ``.lp`` file and its K images.
+
+    Args:
+        lp_path: the ``.lp`` file; image names are relative to its folder.
+        encoding: ``srgb`` (file values sRGB-encoded, linearised) or ``linear``.
+        mask: pixel mask: an image file (see :func:`read_mask`), a bool (H, W) array, or None.
+        min_lz: see :func:`read_lp`.
+
+    Returns:
+        A :class:`Capture` (images linear float32 (K, H, W, C)).
+
+    Raises:
+        FileNotFoundError: the ``.lp`` file or an image is missing (the line is named).
+        ValueError: a malformed ``.lp`` line, images of different sizes, channel counts,
+            formats or bit depths (the line is named), a mask of another size.
+    """
+    _check_encoding(encoding)
+    lp = Path(lp_path)
+    names, dirs, linenos = _read_lp_lines(lp, min_lz)
+    images: np.ndarray | None = None
+    first: tuple | None = None
+    for k, (name, lineno) in enumerate(zip(names, linenos)):
+        path = Path(name) if Path(name).is_absolute() else lp.parent / name
+        where = f"{lp}, line {lineno}"
+        if not path.is_file():
+            raise FileNotFoundError(f"{where}: image {name!r} not found (looked for {path})")
+        try:
+            values, file_format, depth = read_image(path, encoding)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        props = (values.shape, file_format, depth)
+        if first is None:
+            first = (*props, name, lineno)
+            images = np.empty((len(names), *values.shape), dtype=np.float32)
+        elif props != first[:3]:
+            h, w, c = values.shape
+            h0, w0, c0 = first[0]
+            raise ValueError(f"{where}: image {name!r} is {w} x {h} px, {c} channels, "
+                             f"{file_format} {depth} bit; expected {w0} x {h0} px, {c0} "
+                             f"channels, {first[1]} {first[2]} bit as {first[3]!r} (line "
+                             f"{first[4]})")
+        images[k] = values
+    assert images is not None and first is not None
+    h, w = first[0][:2]
+    if mask is not None and not isinstance(mask, np.ndarray):
+        mask = read_mask(mask, (h, w))
+    elif mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (h, w):
+            raise ValueError(f"mask of shape {mask.shape}: expected ({h}, {w}) as the images")
+    return Capture(images, dirs, names, encoding, first[1], first[2], mask, lp)
+
+
+def write_images(capture_like: Capture, images: np.ndarray,
+                 lp_path_or_names: str | Path | Sequence[str], out_dir: str | Path,
+                 jpeg_quality: int = 100) -> list[Path]:
+    """Write images (e.g. model predictions) with the capture's encoding and bit depth.
+
+    Each image goes to ``out_dir/name``; the file format follows the name's suffix (PNG, JPEG,
+    EXR) and the bit depth the capture's (PNG: 8 or 16 as the capture, 16 if it was EXR; JPEG:
+    8; EXR: half or float as the capture, float if it was PNG/JPEG). Values are encoded with
+    ``capture_like.encoding`` (:func:`encode`); integer formats clip the encoded values to
+    [0, 1] and round to the nearest level.
+
+    Args:
+        capture_like: anything with ``encoding``, ``bit_depth`` and ``file_format`` (a
+            :class:`Capture`).
+        images: linear values (K, H, W, C) or (K, H, W), C = 1 or 3.
+        lp_path_or_names: an ``.lp`` file (its names are used and the file is copied into
+            ``out_dir``, so that the output is itself a capture), or K file names.
+        out_dir: output folder (created).
+        jpeg_quality: JPEG quality 1-100 (Mitsuba's writer; 100 by default).
+
+    Returns:
+        The paths written, in order.
+    """
+    import mitsuba as mi
+
+    from .variants import use_variant
+
+    imgs = np.asarray(images)
+    if imgs.ndim == 3:
+        imgs = imgs[..., None]
+    if imgs.ndim != 4 or imgs.shape[3] not in (1, 3):
+        raise ValueError(f"images of shape {np.shape(images)}: expected (K, H, W, C) with "
+                         "C = 1 or 3")
+    lp_copy = None
+    if isinstance(lp_path_or_names, (str, Path)):
+        lp_copy = Path(lp_path_or_names)
+        names, _ = read_lp(lp_copy)
+    else:
+        names = list(lp_path_or_names)
+    if len(names) != imgs.shape[0]:
+        raise ValueError(f"{len(names)} file names for {imgs.shape[0]} images")
+    if not 1 <= int(jpeg_quality) <= 100:
+        raise ValueError(f"jpeg_quality = {jpeg_quality}: expected 1-100")
+    for name in names:
+        if Path(name).suffix.lower() not in _FORMATS:
+            raise ValueError(f"output name {name!r}: suffix not supported; use .png, .jpg or "
+                             ".exr")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    pixel = mi.Bitmap.PixelFormat.Y if imgs.shape[3] == 1 else mi.Bitmap.PixelFormat.RGB
+    written = []
+    with use_variant(mi.variant() or "scalar_rgb"):
+        for name, img in zip(names, imgs):
+            path = out / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fmt = _FORMATS[path.suffix.lower()]
+            values = encode(img, capture_like.encoding)
+            quality = -1
+            if fmt == "exr":
+                dtype = np.float16 if (capture_like.file_format == "exr"
+                                       and capture_like.bit_depth == 16) else np.float32
+                data = values.astype(dtype)
+            else:
+                depth = 8 if fmt == "jpeg" else (16 if capture_like.bit_depth >= 16 else 8)
+                full = 255.0 if depth == 8 else 65535.0
+                dtype = np.uint8 if depth == 8 else np.uint16
+                data = np.rint(np.clip(values, 0.0, 1.0) * full).astype(dtype)
+                quality = int(jpeg_quality) if fmt == "jpeg" else -1
+            bmp = mi.Bitmap(np.ascontiguousarray(data), pixel)
+            bmp.set_srgb_gamma(capture_like.encoding == "srgb" and fmt != "exr")
+            bmp.write(str(path), quality=quality)
+            written.append(path)
+    if lp_copy is not None and lp_copy.resolve() != (out / lp_copy.name).resolve():
+        shutil.copyfile(lp_copy, out / lp_copy.name)
+    return written

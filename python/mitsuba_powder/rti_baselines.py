@@ -1,0 +1,217 @@
+"""Per-pixel baseline models of RTI captures: PTM, HSH order 2, Lambertian photometric stereo.
+
+Every baseline is linear in its coefficients: pixel value (per channel) = sum_j c_j B_j(l), with
+``l = (lu, lv, lz)`` the unit direction towards the light (x to the image's right, y to its
+top, z towards the camera, as :mod:`mitsuba_powder.rti` reads it). A fit is one linear least
+squares problem per pixel and channel, all sharing the K x n design matrix ``A[k, j] =
+B_j(l_k)``: the coefficients of every pixel are ``pinv(A) @ values`` (one matrix product over
+all pixels, no loop over pixels). With a per-pixel light mask (shadows, saturation) each pixel
+solves its own weighted normal equations ``(A^T W A) c = A^T W y``, batched.
+
+Bases (per channel; values in the capture's linear units):
+
+* ``ptm``, Polynomial Texture Map (Malzbender, Gelb, Wolters, "Polynomial texture maps",
+  SIGGRAPH 2001), 6 functions: ``lu^2, lv^2, lu lv, lu, lv, 1`` with ``lu = lx``, ``lv = ly``.
+* ``hsh``, hemispherical harmonics of order 2 (Gautron, Krivanek, Pattanaik, Bouatouch, "A
+  novel hemispherical basis for accurate and efficient rendering", EGSR 2004; the RTI HSH
+  fitters follow it), 9 functions of ``x = cos(theta) = lz`` and ``phi = atan2(ly, lx)``,
+  ``s = sqrt(x - x^2)``::
+
+      H0 = 1 / sqrt(2 pi)
+      H1 = sqrt(6 / pi) cos(phi) s          H2 = sqrt(3 / (2 pi)) (2x - 1)
+      H3 = sqrt(6 / pi) sin(phi) s          H4 = sqrt(30 / pi) cos(2 phi) (x^2 - x)
+      H5 = sqrt(30 / pi) cos(phi) (2x - 1) s
+      H6 = sqrt(5 / (2 pi)) (6x^2 - 6x + 1)
+      H7 = sqrt(30 / pi) sin(phi) (2x - 1) s
+      H8 = sqrt(30 / pi) sin(2 phi) (x^2 - x)
+
+  i.e. the real spherical harmonics with ``cos(theta)`` replaced by ``2 cos(theta) - 1``,
+  normalised to be orthonormal on the upper hemisphere (signs are immaterial to a fit). The
+  basis is defined for ``lz >= 0``: a light slightly below the horizon (``lz < 0``, which
+  :func:`mitsuba_powder.rti.read_lp` accepts down to -0.1) is evaluated at ``x = 0`` (on the
+  horizon, same azimuth).
+* ``lambertian``, photometric stereo (Woodham, "Photometric method for determining surface
+  orientation from multiple images", Opt. Eng. 19, 1980): value = ``b . l``, 3 functions
+  ``lx, ly, lz``, with ``b = albedo * normal`` per channel; the prediction is NOT clamped at
+  zero (lights behind the local tangent plane give negative values), as in the project's issue
+  #13 measurement. The normal map is ``b`` summed over channels, normalised; the albedo of a
+  channel is ``|b|``.
+* ``lambertian_clamped``: the same fit (unclamped least squares), predicting ``max(0, b . l)``.
+  The issue's Lambertian numbers on RealRTI item 7 (9.9 and 8.3) are this model's (docs/rti.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["BASELINES", "Baseline", "basis", "fit_baseline"]
+
+#: baseline names and their number of basis functions per channel
+BASELINES = {"ptm": 6, "hsh": 9, "lambertian": 3, "lambertian_clamped": 3}
+#: pixels per chunk of the batched solves (bounds the float64 working memory)
+_CHUNK = 1 << 15
+
+
+def _directions(directions: np.ndarray) -> np.ndarray:
+    d = np.asarray(directions, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise ValueError(f"directions of shape {d.shape}: expected (K, 3)")
+    norm = np.linalg.norm(d, axis=1)
+    if not np.all(np.isfinite(d)) or np.any(norm == 0):
+        bad = int(np.flatnonzero(~np.isfinite(norm) | (norm == 0))[0])
+        raise ValueError(f"directions[{bad}] = {d[bad].tolist()}: expected a finite non-zero "
+                         "vector")
+    return d / norm[:, None]
+
+
+def basis(name: str, directions: np.ndarray) -> np.ndarray:
+    """Design matrix (K, n) of baseline ``name`` at K light directions.
+
+    Args:
+        name: ``ptm``, ``hsh``, ``lambertian`` or ``lambertian_clamped``.
+        directions: (K, 3) vectors towards the lights (normalised here).
+    """
+    if name not in BASELINES:
+        raise ValueError(f"baseline {name!r} is not known; choose one of {list(BASELINES)}")
+    d = _directions(directions)
+    lx, ly, lz = d[:, 0], d[:, 1], d[:, 2]
+    if name == "ptm":
+        return np.stack([lx * lx, ly * ly, lx * ly, lx, ly, np.ones_like(lx)], axis=1)
+    if name in ("lambertian", "lambertian_clamped"):
+        return d.copy()
+    x = np.clip(lz, 0.0, 1.0)
+    phi = np.arctan2(ly, lx)
+    s = np.sqrt(x - x * x)
+    t = 2.0 * x - 1.0
+    pi = np.pi
+    return np.stack([
+        np.full_like(x, 1.0 / np.sqrt(2.0 * pi)),
+        np.sqrt(6.0 / pi) * np.cos(phi) * s,
+        np.sqrt(3.0 / (2.0 * pi)) * t,
+        np.sqrt(6.0 / pi) * np.sin(phi) * s,
+        np.sqrt(30.0 / pi) * np.cos(2.0 * phi) * (x * x - x),
+        np.sqrt(30.0 / pi) * np.cos(phi) * t * s,
+        np.sqrt(5.0 / (2.0 * pi)) * (6.0 * x * x - 6.0 * x + 1.0),
+        np.sqrt(30.0 / pi) * np.sin(phi) * t * s,
+        np.sqrt(30.0 / pi) * np.sin(2.0 * phi) * (x * x - x),
+    ], axis=1)
+
+
+@dataclass
+class Baseline:
+    """A fitted per-pixel baseline.
+
+    Attributes:
+        name: a key of :data:`BASELINES`.
+        coefficients: float32 (n, H, W, C): the coefficient of each basis function per pixel
+            and channel, in the capture's linear units.
+    """
+
+    name: str
+    coefficients: np.ndarray
+
+    @property
+    def n_parameters(self) -> int:
+        """Fitted numbers per pixel, all channels together (n x C)."""
+        return int(self.coefficients.shape[0] * self.coefficients.shape[3])
+
+    def predict(self, directions: np.ndarray) -> np.ndarray:
+        """Predicted linear images float32 (K', H, W, C) under K' light directions (K', 3)."""
+        a = basis(self.name, directions)
+        n, h, w, c = self.coefficients.shape
+        flat = self.coefficients.reshape(n, -1)
+        out = np.empty((a.shape[0], flat.shape[1]), dtype=np.float32)
+        step = _CHUNK * c
+        for s in range(0, flat.shape[1], step):
+            out[:, s:s + step] = a @ flat[:, s:s + step].astype(np.float64)
+        if self.name == "lambertian_clamped":
+            np.maximum(out, 0.0, out=out)
+        return out.reshape(a.shape[0], h, w, c)
+
+    @property
+    def normals(self) -> np.ndarray:
+        """Lambertian only: unit normals float32 (H, W, 3) (x right, y up, z to the camera)."""
+        if not self.name.startswith("lambertian"):
+            raise ValueError(f"normals: only the lambertian baseline has them, not {self.name!r}")
+        b = self.coefficients.astype(np.float64).sum(axis=3)  # (3, H, W)
+        norm = np.linalg.norm(b, axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n = np.where(norm > 0, b / norm, np.nan)
+        return np.moveaxis(n, 0, -1).astype(np.float32)
+
+    @property
+    def albedo(self) -> np.ndarray:
+        """Lambertian only: ``|b|`` per channel, float32 (H, W, C) (linear units)."""
+        if not self.name.startswith("lambertian"):
+            raise ValueError(f"albedo: only the lambertian baseline has it, not {self.name!r}")
+        return np.linalg.norm(self.coefficients, axis=0).astype(np.float32)
+
+
+def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
+                 light_mask: np.ndarray | None = None) -> Baseline:
+    """Fit baseline ``name`` to every pixel and channel of K images by linear least squares.
+
+    Args:
+        name: a key of :data:`BASELINES` (``ptm``, ``hsh``, ``lambertian``,
+            ``lambertian_clamped``).
+        images: linear values (K, H, W, C) (or (K, H, W)).
+        directions: (K, 3) vectors towards the lights.
+        light_mask: optional bool (K, H, W): True where light k is used at a pixel (False
+            leaves out shadowed or saturated observations); every pixel needs at least n
+            lights (n = 6, 9, 3) in a configuration that determines the basis.
+
+    Returns:
+        A :class:`Baseline`.
+
+    Raises:
+        ValueError: shapes that disagree, too few lights (for the basis or at a pixel), or
+            light directions that do not determine the basis (rank-deficient design).
+    """
+    imgs = np.asarray(images)
+    if imgs.ndim == 3:
+        imgs = imgs[..., None]
+    if imgs.ndim != 4:
+        raise ValueError(f"images of shape {np.shape(images)}: expected (K, H, W, C)")
+    a = basis(name, directions)
+    k, n = a.shape
+    if imgs.shape[0] != k:
+        raise ValueError(f"{imgs.shape[0]} images for {k} light directions")
+    if k < n:
+        raise ValueError(f"baseline {name!r} has {n} coefficients per channel; {k} lights are "
+                         "too few")
+    rank = np.linalg.matrix_rank(a)
+    if rank < n:
+        raise ValueError(f"the {k} light directions determine only {rank} of the {n} "
+                         f"functions of baseline {name!r} (rank-deficient design)")
+    _, h, w, c = imgs.shape
+    y = imgs.reshape(k, h * w, c)
+    coef = np.empty((n, h * w, c), dtype=np.float32)
+    if light_mask is None:
+        pinv = np.linalg.pinv(a)  # (n, K)
+        for s in range(0, h * w, _CHUNK):
+            block = y[:, s:s + _CHUNK].astype(np.float64)
+            coef[:, s:s + _CHUNK] = np.einsum("nk,kpc->npc", pinv, block)
+    else:
+        m = np.asarray(light_mask, dtype=bool)
+        if m.shape != (k, h, w):
+            raise ValueError(f"light_mask of shape {m.shape}: expected ({k}, {h}, {w})")
+        m = m.reshape(k, h * w)
+        counts = m.sum(axis=0)
+        if np.any(counts < n):
+            p = int(np.flatnonzero(counts < n)[0])
+            raise ValueError(f"light_mask leaves {int(counts[p])} lights at pixel (x={p % w}, "
+                             f"y={p // w}) ({int(np.sum(counts < n))} pixels have fewer than "
+                             f"{n}); baseline {name!r} needs >= {n}")
+        for s in range(0, h * w, _CHUNK):
+            wgt = m[:, s:s + _CHUNK].astype(np.float64)  # (K, P)
+            gram = np.einsum("kp,ki,kj->pij", wgt, a, a)
+            rhs = np.einsum("kp,ki,kpc->pic", wgt, a, y[:, s:s + _CHUNK].astype(np.float64))
+            cond = np.linalg.cond(gram)
+            if np.any(~np.isfinite(cond) | (cond > 1e12)):
+                p = s + int(np.flatnonzero(~np.isfinite(cond) | (cond > 1e12))[0])
+                raise ValueError(f"light_mask: the lights kept at pixel (x={p % w}, y={p // w}) "
+                                 f"do not determine the {n} functions of baseline {name!r}")
+            coef[:, s:s + _CHUNK] = np.moveaxis(np.linalg.solve(gram, rhs), 1, 0)
+    return Baseline(name, coef.reshape(n, h, w, c))

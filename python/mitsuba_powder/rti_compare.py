@@ -1,0 +1,255 @@
+"""Held-out-light comparison of per-pixel models of an RTI capture (issue #13's protocols).
+
+Protocols (K lights, indices in ``.lp`` order from 0):
+
+* ``interpolation``: every fifth light is held out, the lights ``k`` with ``k % 5 == phase``,
+  ``phase = 4`` by default (the 5th, 10th, 15th, ... lines of the ``.lp`` file: indices 4, 9,
+  14, ...); the others are fitted. The issue's numbers on RealRTI item 7 were measured with
+  ``phase = 2`` (indices 2, 7, 12, ...; docs/rti.md).
+* ``grazing`` (extrapolation to grazing light): the ``ceil(K / 6)`` lights of lowest
+  elevation (smallest normalised ``lz``; ties broken by ``.lp`` order) are held out; the
+  others are fitted.
+
+Score: the held-out RMSE in 8-bit levels, ``255 * sqrt(mean((encode(prediction) -
+encode(image))^2))`` over the held-out lights, the pixels of the mask (all without one) and
+the channels, where ``encode`` is the capture's encoding (:func:`mitsuba_powder.rti.encode`):
+the error on the file's value scale (0-255 for 8-bit files; 16-bit files and EXR on the same
+0-255 scale of full scale 1.0). With ``encoding="linear"`` (pixel / 255 taken as linear, as the
+issue's numbers) this is also the linear error; with ``srgb`` it is the error of the
+sRGB-encoded values, and ``rmse_linear_8bit`` (255 x the linear RMSE) is reported beside it.
+Predictions are scored as the model gives them (not clamped, except by the model itself:
+``lambertian_clamped``).
+
+A model is a callable ``fit(images, directions, mask) -> predictor`` (``images`` linear
+(K, H, W, C), ``directions`` (K, 3), ``mask`` (H, W) bool or None) whose result has
+``predict(directions) -> images`` and, optionally, ``n_parameters`` (per pixel): the
+baselines are :func:`baseline_fitter`, and another model (the powder fit) plugs in as one
+more entry of the ``models`` dict of :func:`compare`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .rti import Capture, encode
+from .rti_baselines import BASELINES, fit_baseline
+
+__all__ = ["PROTOCOLS", "Comparison", "Row", "baseline_fitter", "compare", "held_out",
+           "write_comparison"]
+
+PROTOCOLS = ("interpolation", "grazing")
+
+#: a model: fit(images (K, H, W, C), directions (K, 3), mask (H, W) or None) -> predictor
+Fitter = Callable[[np.ndarray, np.ndarray, "np.ndarray | None"], Any]
+
+
+def held_out(protocol: str, directions: np.ndarray, phase: int = 4) -> np.ndarray:
+    """Indices (ascending) of the lights a protocol holds out (module docstring).
+
+    Args:
+        protocol: ``interpolation`` or ``grazing``.
+        directions: (K, 3) light directions in ``.lp`` order.
+        phase: interpolation only: hold out the lights ``k % 5 == phase`` (0-4).
+    """
+    if not isinstance(phase, (int, np.integer)) or not 0 <= phase <= 4:
+        raise ValueError(f"phase = {phase!r}: expected an integer 0-4")
+    d = np.asarray(directions, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise ValueError(f"directions of shape {d.shape}: expected (K, 3)")
+    k = d.shape[0]
+    if protocol == "interpolation":
+        idx = np.arange(int(phase), k, 5)
+    elif protocol == "grazing":
+        lz = d[:, 2] / np.linalg.norm(d, axis=1)
+        idx = np.sort(np.argsort(lz, kind="stable")[:math.ceil(k / 6)])
+    else:
+        raise ValueError(f"protocol {protocol!r} is not known; choose one of {PROTOCOLS}")
+    if len(idx) == 0:
+        raise ValueError(f"protocol {protocol!r} holds out no light of {k}; it needs >= 5 "
+                         "lights")
+    return idx
+
+
+def baseline_fitter(name: str) -> Fitter:
+    """The fit callable of baseline ``name`` (``ptm``, ``hsh``, ``lambertian``); the pixel
+    mask is not used by the fit (every pixel is fitted independently)."""
+    if name not in BASELINES:
+        raise ValueError(f"model {name!r} is not a baseline; choose among {list(BASELINES)}")
+
+    def fit(images: np.ndarray, directions: np.ndarray, mask: np.ndarray | None = None):
+        return fit_baseline(name, images, directions)
+
+    fit.__name__ = f"fit_{name}"
+    return fit
+
+
+@dataclass
+class Row:
+    """One model under one protocol.
+
+    Attributes:
+        model, protocol: names.
+        held_out: indices of the held-out lights (``.lp`` order).
+        n_fit: lights fitted.
+        n_parameters: fitted numbers per pixel (all channels), or None if the model says not.
+        rmse_8bit: held-out RMSE on the file's encoded scale, 8-bit levels (0-255).
+        rmse_linear_8bit: 255 x held-out RMSE of the linear values.
+        per_light_8bit: held-out RMSE per held-out light, 8-bit levels (encoded scale).
+        seconds: fit and prediction time, s.
+    """
+
+    model: str
+    protocol: str
+    held_out: list[int]
+    n_fit: int
+    n_parameters: int | None
+    rmse_8bit: float
+    rmse_linear_8bit: float
+    per_light_8bit: list[float]
+    seconds: float
+
+
+@dataclass
+class Comparison:
+    """Rows of a comparison, the capture's description, and per-pixel error maps.
+
+    ``error_maps[(protocol, model)]`` is float32 (H, W): RMSE over held-out lights and channels
+    at each pixel, 8-bit levels on the encoded scale (NaN outside the mask).
+    """
+
+    rows: list[Row]
+    capture: dict
+    error_maps: dict = field(default_factory=dict)
+
+
+def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | None = None,
+            protocols: Sequence[str] = PROTOCOLS, phase: int = 4) -> Comparison:
+    """Fit each model on the kept lights and score it on the held-out ones, per protocol.
+
+    Args:
+        capture: the capture (:func:`mitsuba_powder.rti.load_capture`); its mask selects the
+            scored pixels.
+        models: names of baselines, or a dict name -> fit callable (module docstring);
+            default: all baselines.
+        protocols: among :data:`PROTOCOLS`.
+        phase: the interpolation protocol's phase (:func:`held_out`).
+
+    Returns:
+        A :class:`Comparison`.
+    """
+    if models is None:
+        models = list(BASELINES)
+    if not isinstance(models, Mapping):
+        models = {name: baseline_fitter(name) for name in models}
+    if not models:
+        raise ValueError("no model to compare")
+    images, dirs, mask = capture.images, capture.directions, capture.mask
+    sel = np.ones(capture.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    rows: list[Row] = []
+    maps: dict = {}
+    for protocol in protocols:
+        idx = held_out(protocol, dirs, phase)
+        keep = np.setdiff1d(np.arange(len(dirs)), idx)
+        truth = images[idx]
+        truth_enc = encode(truth, capture.encoding)
+        for name, fit in models.items():
+            t0 = time.perf_counter()
+            model = fit(images[keep], dirs[keep], mask)
+            pred = np.asarray(model.predict(dirs[idx]), dtype=np.float64)
+            seconds = time.perf_counter() - t0
+            if pred.shape != truth.shape:
+                raise ValueError(f"model {name!r}: prediction of shape {pred.shape}, expected "
+                                 f"{truth.shape}")
+            err = encode(pred, capture.encoding) - truth_enc  # (L, H, W, C)
+            err_lin = pred - truth
+            sq = err[:, sel] ** 2  # (L, P, C)
+            rmse = 255.0 * float(np.sqrt(np.mean(sq)))
+            rmse_lin = 255.0 * float(np.sqrt(np.mean(err_lin[:, sel] ** 2)))
+            per_light = (255.0 * np.sqrt(np.mean(sq, axis=(1, 2)))).tolist()
+            emap = np.full(capture.shape, np.nan, dtype=np.float32)
+            emap[sel] = 255.0 * np.sqrt(np.mean(err[:, sel] ** 2, axis=(0, 2)))
+            maps[(protocol, name)] = emap
+            npar = getattr(model, "n_parameters", None)
+            rows.append(Row(name, protocol, idx.tolist(), int(len(keep)),
+                            None if npar is None else int(npar), rmse, rmse_lin, per_light,
+                            seconds))
+    info = {
+        "lp": str(capture.lp_path) if capture.lp_path else None,
+        "lights": int(len(dirs)),
+        "width": capture.shape[1], "height": capture.shape[0], "channels": capture.channels,
+        "encoding": capture.encoding, "file_format": capture.file_format,
+        "bit_depth": capture.bit_depth,
+        "pixels_scored": int(sel.sum()),
+        "interpolation_phase": int(phase),
+    }
+    return Comparison(rows, info, maps)
+
+
+def _markdown(comp: Comparison) -> str:
+    c = comp.capture
+    scale = ("sRGB-encoded values" if c["encoding"] == "srgb" else
+             "linear values (file value / full scale taken as linear)")
+    lines = [
+        "# Held-out-light comparison",
+        "",
+        f"Capture: `{c['lp']}`, {c['lights']} lights, {c['width']} x {c['height']} px, "
+        f"{c['channels']} channels, {c['file_format']} {c['bit_depth']} bit, encoding "
+        f"`{c['encoding']}`; {c['pixels_scored']} pixels scored.",
+        "",
+        f"Held-out RMSE in 8-bit levels (0-255) of the {scale}; predictions unclamped "
+        "(except lambertian_clamped's).",
+        f"Protocols: interpolation holds out the lights k % 5 == {c['interpolation_phase']} "
+        "(.lp order, from 0); grazing holds out the ceil(K/6) lights of smallest lz.",
+    ]
+    for protocol in dict.fromkeys(r.protocol for r in comp.rows):
+        rows = sorted((r for r in comp.rows if r.protocol == protocol),
+                      key=lambda r: r.rmse_8bit)
+        lines += ["", f"## {protocol} (held out: {rows[0].held_out}; fitted on "
+                  f"{rows[0].n_fit})", "",
+                  "| model | parameters / pixel | RMSE (8-bit levels) | "
+                  "255 x linear RMSE | time (s) |",
+                  "|---|---:|---:|---:|---:|"]
+        for r in rows:
+            npar = "?" if r.n_parameters is None else str(r.n_parameters)
+            lines.append(f"| {r.model} | {npar} | {r.rmse_8bit:.2f} | "
+                         f"{r.rmse_linear_8bit:.2f} | {r.seconds:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_comparison(comp: Comparison, out_dir: str | Path, error_images: bool = True
+                     ) -> Path:
+    """Write ``compare.md``, ``compare.json`` and (optionally) ``error_<protocol>_<model>.png``
+    (per-pixel held-out RMSE, 8-bit levels, colour scale 0 to the largest 99th percentile of
+    all maps, magma; grey outside the mask) into ``out_dir``.
+
+    Returns:
+        The path of ``compare.md``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    md = out / "compare.md"
+    md.write_text(_markdown(comp), encoding="utf-8")
+    doc = {"capture": comp.capture, "rows": [asdict(r) for r in comp.rows],
+           "units": "RMSE in 8-bit levels (0-255) on the capture's encoded scale; "
+                    "rmse_linear_8bit: 255 x RMSE of linear values"}
+    (out / "compare.json").write_text(json.dumps(doc, indent=2), encoding="utf-8")
+    if error_images and comp.error_maps:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        vmax = max(float(np.nanpercentile(m, 99)) for m in comp.error_maps.values())
+        cmap = plt.get_cmap("magma").with_extremes(bad="0.5")
+        for (protocol, name), m in comp.error_maps.items():
+            plt.imsave(out / f"error_{protocol}_{name}.png", np.ma.masked_invalid(m),
+                       cmap=cmap, vmin=0.0, vmax=max(vmax, 1e-6))
+    return md
