@@ -19,6 +19,8 @@ SCRIPTS = {
     "bench_mie_update.py": ("mie_update", ["update+AD ms", "Fresnel ms"]),
     "bench_fit.py": ("fit", ["s (first)", "loss/best", "agreeing"]),
     "bench_memory.py": ("memory", ["peak RSS MiB"]),
+    "bench_textures.py": ("textures", ["relative to constant", "max relative error"]),
+    "bench_rti_fit.py": ("rti_fit", ["fit s", "peak MiB"]),
     "ptfe_reference_fit.py": ("ptfe_reference", ["RMSE BRF", "within 1 %"]),
 }
 #: benchmark scripts whose name does not start with bench_

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 
@@ -379,11 +380,67 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fixed_properties(items: list[str]) -> dict:
+    """--set NAME=VALUE items as a property dict."""
+    fixed = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--set {item!r}: expected NAME=VALUE")
+        fixed[name] = _value(value)
+    return fixed
+
+
+def _powder_fitter(free: list[str] | None, fixed: dict, progress=None):
+    """compare-maps' powder model: rti_fit.fit_maps with these settings."""
+    from .rti_fit import fit_maps
+
+    def fit(images, directions, mask=None):
+        return fit_maps(images, directions, free=free, mask=mask, fixed=fixed,
+                        progress=progress)
+
+    return fit
+
+
+def _cmd_fit_maps(args: argparse.Namespace) -> int:
+    from .rti import load_capture
+    from .rti_fit import fit_maps
+    from .rti_maps import write_maps
+
+    capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
+    k, h, w, c = capture.images.shape
+    print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
+          f"{capture.bit_depth} bit, encoding {capture.encoding}")
+    free = [n.strip() for n in args.free.split(",") if n.strip()] if args.free else None
+    result = fit_maps(capture.images, capture.directions, free=free, mask=capture.mask,
+                      fixed=_fixed_properties(args.set), gains=args.gains,
+                      max_iterations=args.iterations, rounds=args.rounds, progress=print)
+    path = write_maps(result, args.out, capture, list(capture.names))
+    info = json.loads(path.read_text())
+    print(f"free per pixel: normal + {', '.join(result.free)} ({result.n_parameters} numbers)")
+    for name, st in info["statistics"].items():
+        if st.get("median") is not None:
+            print(f"  {name}: median {st['median']:.4g} (5-95 %: {st['p5']:.4g}-{st['p95']:.4g})")
+    print(f"wrote {args.out}: maps (EXR), fit.json, scene.xml")
+    return 0
+
+
+def _cmd_relight(args: argparse.Namespace) -> int:
+    from .rti_maps import relight_files
+
+    paths = relight_files(args.maps, args.lp, args.out)
+    print(f"wrote {len(paths)} images to {args.out}")
+    return 0
+
+
 def _cmd_compare_maps(args: argparse.Namespace) -> int:
     from .rti import load_capture
-    from .rti_compare import compare, write_comparison
+    from .rti_compare import baseline_fitter, compare, write_comparison
 
-    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    names = [m.strip() for m in args.models.split(",") if m.strip()]
+    free = [n.strip() for n in args.free.split(",") if n.strip()] if args.free else None
+    models = {name: (_powder_fitter(free, _fixed_properties(args.set))
+                     if name == "powder" else baseline_fitter(name)) for name in names}
     capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
     k, h, w, c = capture.images.shape
     print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
@@ -580,13 +637,55 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask", default=None, help="mask image (PNG): pixels above half scale "
                                                 "are scored")
     p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
-                   help="comma-separated: ptm, hsh, lambertian, lambertian_clamped")
+                   help="comma-separated: ptm, hsh, lambertian, lambertian_clamped, powder "
+                        "(the per-pixel powder fit of fit-maps)")
+    p.add_argument("--free", default=None,
+                   help="powder model: properties fitted per pixel besides the normal "
+                        "(default: see fit-maps)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="powder model: a plugin property held for every pixel (repeatable)")
     p.add_argument("--phase", type=int, default=4,
                    help="interpolation protocol: hold out the lights k %% 5 == PHASE (.lp "
                         "order from 0; default 4)")
     p.add_argument("--no-error-images", action="store_true",
                    help="do not write the per-pixel error maps (PNG)")
     p.set_defaults(func=_cmd_compare_maps)
+
+    p = sub.add_parser("fit-maps", help="fit a normal and powder parameters to every pixel of "
+                                        "an RTI capture; write EXR maps and a scene")
+    p.add_argument("capture", help="the capture's .lp file (first line the count, then "
+                                   "'filename lx ly lz'); images beside it")
+    p.add_argument("--out", required=True,
+                   help="output folder: <property>.exr, albedo.exr, normal.exr, residual.exr, "
+                        "fit.json, scene.xml")
+    p.add_argument("--free", default=None,
+                   help="comma-separated properties fitted per pixel besides the normal "
+                        "(default: albedo, amplitude_surface, correlation_length; "
+                        "docs/rti.md says why)")
+    p.add_argument("--encoding", choices=("srgb", "linear"), default="srgb",
+                   help="srgb: file values are sRGB-encoded (linearised on read); linear: "
+                        "value / full scale is linear (default srgb)")
+    p.add_argument("--mask", default=None, help="mask image (PNG): pixels above half scale "
+                                                "are fitted")
+    p.add_argument("--gains", choices=("fit", "fixed"), default="fit",
+                   help="per-light gains shared by all pixels: fitted (mean 1) or all 1")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a plugin property held for every pixel (repeatable), e.g. "
+                        "--set extinction=0.5")
+    p.add_argument("--iterations", type=int, default=30,
+                   help="Levenberg-Marquardt iterations per round")
+    p.add_argument("--rounds", type=int, default=3,
+                   help="alternations of the per-pixel fit with the gains")
+    p.set_defaults(func=_cmd_fit_maps)
+
+    p = sub.add_parser("relight", help="images of a fit-maps result under the lights of an "
+                                       ".lp file")
+    p.add_argument("maps", help="folder written by fit-maps")
+    p.add_argument("--lp", required=True,
+                   help="lights: an .lp file (count, then 'filename lx ly lz' per line)")
+    p.add_argument("--out", required=True, help="output folder (one image per .lp line, "
+                                                "the capture's format and bit depth)")
+    p.set_defaults(func=_cmd_relight)
     return parser
 
 

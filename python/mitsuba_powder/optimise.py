@@ -115,8 +115,9 @@ def _solve_damped(jac: np.ndarray, res: np.ndarray, damping: np.ndarray,
                   free: np.ndarray) -> np.ndarray:
     """Levenberg-Marquardt steps of every start (held variables get 0)."""
     jf = jac[:, :, free]
-    a = np.einsum("bni,bnj->bij", jf, jf)
-    g = np.einsum("bni,bn->bi", jf, res)
+    # (matmul, not einsum: 5x faster for many small systems, same values)
+    a = np.matmul(jf.transpose(0, 2, 1), jf)
+    g = np.matmul(jf.transpose(0, 2, 1), res[:, :, None])[:, :, 0]
     diag = np.maximum(np.einsum("bii->bi", a), 1e-30)
     a_damped = a + (damping[:, None] * diag)[:, :, None] * np.eye(jf.shape[2])[None]
     a_damped += 1e-12 * np.max(diag, axis=1)[:, None, None] * np.eye(jf.shape[2])[None]

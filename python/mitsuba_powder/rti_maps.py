@@ -1,0 +1,268 @@
+"""Powder maps on disk: a :func:`mitsuba_powder.rti_fit.fit_maps` result as EXR maps, ``fit.json``
+and a Mitsuba scene, read back for relighting.
+
+A maps folder holds:
+
+- ``<property>.exr``: one single-channel float32 map per fitted (or per-pixel) float property,
+  in the plugin's units; ``albedo.exr`` (RGB, the single-scattering albedo per channel);
+  ``normal.exr`` (RGB, the unit normal's x, y, z in the image frame: x to the right, y up, z
+  towards the camera); ``normal_tangent.exr`` (the same encoded as ``(n + 1) / 2`` for
+  Mitsuba's ``normalmap`` BSDF); ``residual.exr`` (RMS residual per pixel, linear units);
+  ``mask.exr`` (1 where fitted);
+- ``fit.json``: the settings held for every pixel, the free properties, the per-light gains, the
+  capture's encoding / bit depth / file format (so that relit images match it), per-map
+  statistics and the fit's diagnostics;
+- ``scene.xml``: the surface as a unit-height rectangle (width / height = the image's aspect)
+  with a ``normalmap`` BSDF around ``<bsdf type="powder">`` whose properties are the maps as
+  ``raw`` bitmap textures, seen by an orthographic camera straight above (one pixel per texel)
+  and lit by a directional emitter of irradiance ``$irradiance`` from ``($lx, $ly, $lz)``
+  (towards the light, image frame). It renders with ``mitsuba scene.xml -D lx=... -D ly=...
+  -D lz=...`` and with ``mitsuba-powder render``; with the ``direct`` integrator a pixel is the
+  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti_fit.relight` predicts.
+
+Maps are written with row 0 at the top of the image (as the capture); the scene's bitmaps map
+them onto the rectangle with ``to_uv`` flipping v (Mitsuba's rectangle has v up, its bitmaps
+row 0 at v = 0).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .rti import Capture, read_lp, write_images
+from .rti_fit import MapsResult
+from .variants import use_variant
+
+#: File written for the scene's normal map (tangent space, encoded (n + 1) / 2)
+NORMAL_TANGENT = "normal_tangent.exr"
+
+
+def _write_exr(path: Path, data: np.ndarray) -> None:
+    import mitsuba as mi
+
+    with use_variant("scalar_rgb"):
+        arr = np.ascontiguousarray(np.asarray(data, dtype=np.float32))
+        if arr.ndim == 2:
+            arr = arr[..., None]
+        fmt = mi.Bitmap.PixelFormat.Y if arr.shape[2] == 1 else mi.Bitmap.PixelFormat.RGB
+        mi.Bitmap(arr, fmt).write(str(path))
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    import mitsuba as mi
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such map (the folder must come from fit-maps)")
+    with use_variant("scalar_rgb"):
+        arr = np.array(mi.Bitmap(str(path)), dtype=np.float32)
+    return arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
+
+
+def _stats(values: np.ndarray) -> dict:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return {"median": None}
+    p = np.percentile(v, [5, 50, 95])
+    return {"p5": float(p[0]), "median": float(p[1]), "p95": float(p[2])}
+
+
+def scene_xml(result: MapsResult, settings: dict) -> str:
+    """The Mitsuba scene of a maps folder (module docstring)."""
+    h, w = result.mask.shape
+    aspect = w / h
+
+    def bitmap(name: str, filename: str) -> str:
+        return (f'        <texture type="bitmap" name="{name}">\n'
+                f'            <string name="filename" value="{filename}"/>\n'
+                f'            <boolean name="raw" value="true"/>\n'
+                f'            <string name="filter_type" value="nearest"/>\n'
+                f'            <transform name="to_uv">\n'
+                f'                <scale y="-1"/>\n'
+                f'                <translate y="1"/>\n'
+                f'            </transform>\n'
+                f'        </texture>\n')
+
+    props = []
+    for key, value in settings.items():
+        if isinstance(value, bool) or value is None:
+            continue
+        if isinstance(value, str):
+            props.append(f'            <string name="{key}" value="{value}"/>')
+        elif isinstance(value, (int, float)) and math.isfinite(value):
+            props.append(f'            <float name="{key}" value="{value!r}"/>')
+    maps = "".join("    " + line + "\n" for name in sorted(result.maps)
+                   for line in bitmap(name, f"{name}.exr").splitlines())
+    albedo = "".join("    " + line + "\n"
+                     for line in bitmap("albedo", "albedo.exr").splitlines())
+    return f"""<!--
+  Powder maps fitted by mitsuba-powder fit-maps ({w} x {h} px). Render under a light from
+  (lx, ly, lz) (towards the light; x right, y up, z towards the camera), e.g.
+    mitsuba scene.xml -D lx=0.5 -D ly=0 -D lz=0.866 -o relit.exr
+    mitsuba-powder render scene.xml -o relit.exr -D lx=0.5 -D ly=0 -D lz=0.866
+  A pixel is E f (n . l) (direct illumination; E = $irradiance), as rti_fit.relight predicts.
+-->
+<scene version="3.0.0">
+    <default name="spp" value="4"/>
+    <default name="lx" value="0"/>
+    <default name="ly" value="0"/>
+    <default name="lz" value="1"/>
+    <default name="irradiance" value="1"/>
+
+    <integrator type="direct">
+        <integer name="emitter_samples" value="1"/>
+        <integer name="bsdf_samples" value="0"/>
+    </integrator>
+
+    <sensor type="orthographic">
+        <!-- the camera spans x in [-s, s] and y in [-s h / w, s h / w] for scale s = w / h:
+             the rectangle exactly, one pixel per texel -->
+        <transform name="to_world">
+            <scale x="{aspect!r}" y="{aspect!r}"/>
+            <lookat origin="0, 0, 2" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <sampler type="independent">
+            <integer name="sample_count" value="$spp"/>
+        </sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="{w}"/>
+            <integer name="height" value="{h}"/>
+            <rfilter type="box"/>
+        </film>
+    </sensor>
+
+    <emitter type="directional">
+        <!-- emits along its local +z: from (lx, ly, lz) towards the origin -->
+        <transform name="to_world">
+            <lookat origin="$lx, $ly, $lz" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <rgb name="irradiance" value="$irradiance"/>
+    </emitter>
+
+    <shape type="rectangle">
+        <transform name="to_world">
+            <scale x="{aspect!r}" y="1"/>
+        </transform>
+        <!-- no shadow-terminator term: the fitted model is f (n . l) exactly -->
+        <bsdf type="normalmap">
+            <boolean name="use_shadowing_function" value="false"/>
+{bitmap("normalmap", NORMAL_TANGENT)}            <bsdf type="powder">
+{albedo}{maps}{chr(10).join(props)}
+            </bsdf>
+        </bsdf>
+    </shape>
+</scene>
+"""
+
+
+def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None = None,
+               light_names: list[str] | None = None) -> Path:
+    """Write a fit to ``out_dir`` (module docstring); returns the path of ``fit.json``.
+
+    Args:
+        result: a :func:`mitsuba_powder.rti_fit.fit_maps` result.
+        out_dir: output folder (created).
+        capture: the fitted capture (its encoding, bit depth and file format are recorded, so
+            that :func:`relight_files` writes matching images).
+        light_names: the capture's image names, in the order of ``result.gains``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    maps = result.as_maps()
+    for name in result.maps:
+        _write_exr(out / f"{name}.exr", np.asarray(maps[name], dtype=np.float32))
+    _write_exr(out / "albedo.exr", maps["albedo"])
+    normals = np.asarray(maps["normal"], dtype=np.float32)
+    _write_exr(out / "normal.exr", normals)
+    _write_exr(out / NORMAL_TANGENT, 0.5 * (normals + 1.0))
+    _write_exr(out / "residual.exr", result.residual_rms)
+    _write_exr(out / "mask.exr", result.mask.astype(np.float32))
+    settings = {k: v for k, v in result.settings.items()
+                if isinstance(v, (str, int, float)) and not isinstance(v, bool)}
+    (out / "scene.xml").write_text(scene_xml(result, settings))
+    info = {
+        "kind": "mitsuba-powder maps",
+        "size": {"height": int(result.mask.shape[0]), "width": int(result.mask.shape[1])},
+        "free": list(result.free),
+        "parameters_per_pixel": result.n_parameters,
+        "maps": sorted(result.maps),
+        "settings": settings,
+        "variant": result.variant,
+        "gains": [float(g) for g in result.gains],
+        "lights": light_names,
+        "capture": None if capture is None else {
+            "encoding": capture.encoding, "bit_depth": capture.bit_depth,
+            "file_format": capture.file_format,
+            "lp": None if capture.lp_path is None else str(capture.lp_path)},
+        "statistics": {**{name: _stats(v[result.mask]) for name, v in result.maps.items()},
+                       **{f"albedo[{c}]": _stats(result.albedo[..., c][result.mask])
+                          for c in range(3)},
+                       "residual_rms": _stats(result.residual_rms[result.mask])},
+        "used_observations": float(result.used[:, result.mask].mean())
+        if result.mask.any() else 0.0,
+        "fit": result.fit_settings,
+    }
+    path = out / "fit.json"
+    path.write_text(json.dumps(info, indent=1, default=_json_default))
+    return path
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
+    """A maps folder written by :func:`write_maps`: the result (enough to relight) and the
+    contents of ``fit.json``.
+
+    Raises:
+        FileNotFoundError: the folder lacks ``fit.json`` or a map it lists.
+        ValueError: ``fit.json`` is not a maps description.
+    """
+    folder = Path(maps_dir)
+    path = folder / "fit.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file; give a folder written by fit-maps")
+    info = json.loads(path.read_text())
+    if info.get("kind") != "mitsuba-powder maps":
+        raise ValueError(f"{path}: not a fit-maps result (kind = {info.get('kind')!r})")
+    mask = _read_exr(folder / "mask.exr") > 0.5
+    result = MapsResult(
+        normals=_read_exr(folder / "normal.exr"),
+        albedo=_read_exr(folder / "albedo.exr"),
+        maps={name: _read_exr(folder / f"{name}.exr") for name in info["maps"]},
+        settings=dict(info["settings"]),
+        residual_rms=_read_exr(folder / "residual.exr"),
+        gains=np.asarray(info["gains"], dtype=np.float64),
+        used=np.zeros((0,) + mask.shape, dtype=bool),
+        free=list(info["free"]),
+        mask=mask,
+        variant=info.get("variant", "llvm_ad_rgb"),
+        fit_settings=info.get("fit", {}),
+    )
+    return result, info
+
+
+def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Path
+                  ) -> list[Path]:
+    """One predicted image per line of ``lights_lp`` (same file names), with the fitted
+    capture's encoding and bit depth (PNG 8 bit sRGB when the capture is not recorded).
+
+    Returns:
+        The paths written.
+    """
+    result, info = read_maps(maps_dir)
+    names, directions = read_lp(lights_lp)
+    images = result.predict(directions)
+    cap = info.get("capture") or {"encoding": "srgb", "bit_depth": 8, "file_format": "png"}
+    like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=directions,
+                   names=list(names), encoding=cap["encoding"],
+                   file_format=cap["file_format"], bit_depth=int(cap["bit_depth"]))
+    return write_images(like, images, lights_lp, out_dir)
