@@ -543,7 +543,9 @@ public:
                                     powder_param::Fraction2, powder_param::AgglomerateRadius,
                                     powder_param::AgglomerateFill })
             grains_changed |= string::contains(keys, powder_param::Table[p].name);
-        if (!m_albedo && grains_changed)
+        if (!m_albedo && grain_textured())
+            update_grain_texture_table();
+        else if (!m_albedo && grains_changed)
             update_mie_tables();
         if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
             check_albedo();
@@ -574,7 +576,8 @@ public:
         m_uniform_volume = false;
         if constexpr (!is_spectral_v<Spectrum>) {
             m_uniform_volume = (!m_albedo || !m_albedo->is_spatially_varying()) &&
-                               !textured(powder_param::G) && !textured(powder_param::TauO);
+                               !textured(powder_param::G) && !textured(powder_param::TauO) &&
+                               !grain_textured();
             if (m_uniform_volume) {
                 SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
                 m_volume = volume_constants(albedo(si, true), tau_o(si, true), m_g);
@@ -596,6 +599,7 @@ public:
 
         // Detached means, used only to weight the sampling lobes
         m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
+                              : grain_textured() ? Float((ScalarFloat) m_grain_rho_mean)
                               : Float(dr::mean(dr::detach(m_rho_table)));
         m_tau_mean = !m_tau_given ? Float(dr::mean(m_tau_table))
                      : textured(powder_param::TauO)
@@ -716,9 +720,10 @@ public:
     /// Attributes: "albedo" (rho), "tau_o", and with the Mie path "q_ext",
     /// "q_sca" (first population) and "q_ext2", "q_sca2" (second)
     Mask has_attribute(const std::string &name, Mask /*active*/) const override {
+        bool tables = !m_albedo && !grain_textured();
         return name == "albedo" || name == "tau_o" ||
-               (!m_albedo && (name == "q_ext" || name == "q_sca")) ||
-               (!m_albedo && m_two_populations && (name == "q_ext2" || name == "q_sca2"));
+               (tables && (name == "q_ext" || name == "q_sca")) ||
+               (tables && m_two_populations && (name == "q_ext2" || name == "q_sca2"));
     }
 
     UnpolarizedSpectrum eval_attribute(const std::string &name,
@@ -730,8 +735,9 @@ public:
             return tau_o(si, active);
         if (!dr::any_nested(has_attribute(name, active)))
             Throw("powder: no attribute \"%s\"; available: albedo, tau_o%s", name,
-                  m_albedo ? "" : (m_two_populations ? ", q_ext, q_sca, q_ext2, q_sca2"
-                                                     : ", q_ext, q_sca"));
+                  m_albedo || grain_textured()
+                      ? "" : (m_two_populations ? ", q_ext, q_sca, q_ext2, q_sca2"
+                                                : ", q_ext, q_sca"));
         const FloatStorage &table = name == "q_ext" ? m_qext_table
                                   : name == "q_sca" ? m_qsca_table
                                   : name == "q_ext2" ? m_qext2_table : m_qsca2_table;
@@ -851,6 +857,8 @@ private:
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
         if (m_albedo)
             return m_albedo->eval(si, active);
+        if (grain_textured())
+            return grain_texture_albedo(si, active);
         if constexpr (is_spectral_v<Spectrum>)
             return lookup_grains(si, active).first;
         else
@@ -1156,6 +1164,161 @@ private:
         dr::make_opaque(m_rho_table);
     }
 
+    /// Spatially varying grains: relative accuracy of the tabulated albedo (checked at
+    /// every interval's midpoint) and the largest table (wavelengths x nodes)
+    static constexpr double GrainTableTolerance = 2e-4;
+    static constexpr size_t GrainTableRecords = 200000;
+
+    /// Whether a grain property that sets the albedo is a texture
+    bool grain_textured() const {
+        return !m_albedo &&
+               (agglomerate() ? textured(powder_param::AgglomerateRadius)
+                              : textured(powder_param::Radius) ||
+                                    (m_two_populations && (textured(powder_param::Radius2) ||
+                                                           textured(powder_param::Fraction2))));
+    }
+
+    /// The grain parameter that is the (first) population's radius
+    powder_param::Id radius_id() const {
+        return agglomerate() ? powder_param::AgglomerateRadius : powder_param::Radius;
+    }
+
+    /// Smallest and largest radius (um) of a radius parameter, texture or float
+    std::pair<double, double> radius_range(powder_param::Id p) const {
+        if (textured(p)) {
+            TextureValues<Float, Spectrum> v = texture_values(p);
+            if (!v.found)
+                Throw("powder: the texture of property \"%s\" exposes no values, so the "
+                      "radii to tabulate are unknown; use a bitmap or a constant texture",
+                      powder_param::Table[p].name);
+            return { v.lo, v.hi };
+        }
+        double r = value_of(this->*member(p));
+        return { r, r };
+    }
+
+    /**
+     * Spatially varying grains (a radius, radius2 or fraction2 texture): tabulate
+     * Q_ext and Q_sca over ln r (powder::efficiency_table) for the radii the textures
+     * hold, widened by a factor 1.25 each way so that edits of the texture usually stay
+     * inside (outside, the table is rebuilt); eval interpolates per lane and mixes the
+     * populations (grain_texture_albedo). Differentiable through the interpolation.
+     */
+    void update_grain_texture_table() {
+        auto [lo, hi] = radius_range(radius_id());
+        if (m_two_populations) {
+            auto [lo2, hi2] = radius_range(powder_param::Radius2);
+            lo = std::min(lo, lo2);
+            hi = std::max(hi, hi2);
+        }
+        if (m_grain_table.nodes > 0 && lo >= m_grain_table_lo && hi <= m_grain_table_hi)
+            return; // the current table covers the radii
+        double lo_t = lo / 1.25, hi_t = hi * 1.25;
+        if (m_grain_model != powder::GrainModel::Slab) {
+            // keep the widened range inside the size parameters Mie accepts
+            double wl_lo = *std::min_element(m_table_wavelengths.begin(),
+                                             m_table_wavelengths.end()),
+                   wl_hi = *std::max_element(m_table_wavelengths.begin(),
+                                             m_table_wavelengths.end());
+            lo_t = std::max(lo_t, std::min(lo, 1e-3 * wl_hi * 1e-3 / (2.0 * M_PI)));
+            hi_t = std::min(hi_t, std::max(hi, 200.0 * wl_lo * 1e-3 / (2.0 * M_PI)));
+        }
+        hi_t = std::max(hi_t, lo_t * 1.001);
+        powder::Grains grains{ 1.0, 1.0, 0.0, false, m_grain_model,
+                               1.0, value_of(m_agglomerate_fill), m_mixing };
+        auto parallel_for = [](size_t n, auto &&row) {
+            dr::parallel_for(dr::blocked_range<size_t>(0, n, 4),
+                             [&](const dr::blocked_range<size_t> &range) {
+                                 for (size_t i = range.begin(); i != range.end(); ++i)
+                                     row(i);
+                             });
+        };
+        double error = 0.0;
+        m_grain_table = powder::efficiency_table(
+            grains, lo_t, hi_t, m_table_wavelengths, m_index,
+            powder_param::Table[radius_id()].name, GrainTableTolerance, GrainTableRecords,
+            error, parallel_for);
+        if (error > GrainTableTolerance)
+            Log(Warn, "powder: the albedo table of radii %g-%g um is accurate to %.2g "
+                      "(relative, at the midpoints of its %zu nodes), not %g: the radii span "
+                      "too many Mie resonances for %zu records; narrow the texture's range",
+                lo_t, hi_t, error, m_grain_table.nodes, GrainTableTolerance,
+                GrainTableRecords);
+        m_grain_table_lo = lo_t;
+        m_grain_table_hi = hi_t;
+        std::vector<ScalarFloat> rec(m_grain_table.records.begin(),
+                                     m_grain_table.records.end());
+        m_grain_records = dr::load<FloatStorage>(rec.data(), rec.size());
+        dr::make_opaque(m_grain_records);
+        m_grain_u0 = (ScalarFloat) m_grain_table.u0;
+        m_grain_du = (ScalarFloat) m_grain_table.du;
+        // a mean albedo for the sampling weights only: at the middle of the range
+        double r_mid = std::sqrt(lo * hi), rho = 0.0;
+        for (size_t i = 0; i < m_table_wavelengths.size(); ++i) {
+            auto [qe, qs] = powder::efficiency_at(m_grain_table, i, r_mid);
+            rho += qs / qe;
+        }
+        m_grain_rho_mean = rho / (double) m_table_wavelengths.size();
+        // the constant-radius tables are not used; keep them valid for packing
+        size_t n = m_table_wavelengths.size();
+        m_rho_table = dr::zeros<FloatStorage>(n);
+        m_qext_table = m_qsca_table = m_qext2_table = m_qsca2_table = dr::zeros<FloatStorage>(n);
+    }
+
+    /// (Q_ext, Q_sca) per channel of grains of radius r (um, per lane) from the
+    /// efficiency table: cubic Hermite in ln r, and in spectral variants linear in
+    /// wavelength on the 1 nm grid, as the constant tables
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    grain_efficiencies(const Float &r, const SurfaceInteraction3f &si, Mask active) const {
+        uint32_t nodes = (uint32_t) m_grain_table.nodes;
+        Float t = dr::clip((dr::log(r) - m_grain_u0) * (1.f / m_grain_du), 0.f,
+                           (float) (nodes - 1) - 1e-3f);
+        UInt32 j = UInt32(dr::floor(dr::detach(t)));
+        Float s = t - Float(j), one_s = 1.f - s,
+              h00 = (1.f + 2.f * s) * dr::square(one_s), h10 = s * dr::square(one_s) * m_grain_du,
+              h01 = dr::square(s) * (3.f - 2.f * s), h11 = dr::square(s) * (s - 1.f) * m_grain_du;
+        auto hermite = [&](const UInt32 &row) {
+            auto v = dr::gather<dr::Array<Float, 8>>(m_grain_records, row * nodes + j, active);
+            return std::pair<Float, Float>(h00 * v[0] + h10 * v[2] + h01 * v[4] + h11 * v[6],
+                                           h00 * v[1] + h10 * v[3] + h01 * v[5] + h11 * v[7]);
+        };
+        UnpolarizedSpectrum qe, qs;
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum pos = table_position(si);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                UInt32 i0 = UInt32(dr::floor(pos[c]));
+                Float w = pos[c] - Float(i0);
+                auto [e0, s0] = hermite(i0);
+                auto [e1, s1] = hermite(i0 + 1u);
+                qe[c] = dr::lerp(e0, e1, w);
+                qs[c] = dr::lerp(s0, s1, w);
+            }
+        } else {
+            DRJIT_MARK_USED(si);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                auto [e, q] = hermite(UInt32((uint32_t) c));
+                qe[c] = e;
+                qs[c] = q;
+            }
+        }
+        return { qe, qs };
+    }
+
+    /// The albedo of spatially varying grains per lane: rho = sum_j (f_j / r_j)
+    /// Q_sca,j / sum_j (f_j / r_j) Q_ext,j (MODEL.md; slab: Q_ext = 1, Q_sca = rho)
+    UnpolarizedSpectrum grain_texture_albedo(const SurfaceInteraction3f &si,
+                                             Mask active) const {
+        Float r1 = at(radius_id(), si, active);
+        auto [qe1, qs1] = grain_efficiencies(r1, si, active);
+        if (!m_two_populations)
+            return qs1 / qe1;
+        Float r2 = at(powder_param::Radius2, si, active),
+              f2 = at(powder_param::Fraction2, si, active),
+              w1 = (1.f - f2) / r1, w2 = f2 / r2;
+        auto [qe2, qs2] = grain_efficiencies(r2, si, active);
+        return (w1 * qs1 + w2 * qs2) / (w1 * qe1 + w2 * qe2);
+    }
+
     // ---------------------------------------------------------- the model
 
     /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), MODEL.md Eq. 10;
@@ -1200,7 +1363,7 @@ private:
             return m_volume;
         Float g = at(powder_param::G, si, active);
         if constexpr (is_spectral_v<Spectrum>) {
-            if (!m_albedo && !m_tau_given) { // both from one packet gather per channel
+            if (!m_albedo && !m_tau_given && !grain_textured()) { // one packet gather
                 auto [rho, tau] = lookup_grains(si, active);
                 return volume_constants(rho, tau, g);
             }
@@ -1794,15 +1957,10 @@ private:
      */
     void check_texture(powder_param::Id p) const {
         const powder_param::Spec &spec = powder_param::Table[p];
-        switch (p) {
-            case powder_param::Radius: case powder_param::Radius2:
-            case powder_param::Fraction2: case powder_param::AgglomerateRadius:
-            case powder_param::AgglomerateFill:
-                Throw("powder: property \"%s\" cannot be a texture yet (the albedo of "
-                      "spatially varying grains is not implemented); give a float, or give "
-                      "\"albedo\" as a texture instead", spec.name);
-            default: break;
-        }
+        if (p == powder_param::AgglomerateFill)
+            Throw("powder: property \"agglomerate_fill\" cannot be a texture (the albedo "
+                  "tables of spatially varying grains are tabulated over the radius at one "
+                  "fill); give a float");
         TextureValues<Float, Spectrum> values = texture_values(p);
         if (!values.found) {
             Log(Warn, "powder: the texture of property \"%s\" exposes no values, so its "
@@ -1953,6 +2111,11 @@ private:
     ref<Texture> m_textures[powder_param::Count]; ///< texture-valued float parameters
     Float m_radius, m_radius2, m_fraction2;
     Float m_agglomerate_radius, m_agglomerate_fill;
+    /// spatially varying grains: efficiency table (grain_efficiencies)
+    powder::EfficiencyTable m_grain_table;
+    FloatStorage m_grain_records;
+    double m_grain_table_lo = 0.0, m_grain_table_hi = 0.0, m_grain_rho_mean = 0.5;
+    ScalarFloat m_grain_u0 = 0.f, m_grain_du = 1.f;
     powder::GrainModel m_grain_model = powder::GrainModel::Sphere;
     powder::Mixing m_mixing = powder::Mixing::Bruggeman;
     Float m_rho_mean, m_tau_mean;
@@ -1987,7 +2150,7 @@ private:
                    m_agglomerate_fill, m_rho_mean, m_tau_mean,
                    m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume,
                    m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
-                   m_qsca2_table, m_norm_packed)
+                   m_qsca2_table, m_norm_packed, m_grain_records)
 };
 
 NAMESPACE_END(mitsuba)

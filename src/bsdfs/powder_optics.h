@@ -483,6 +483,7 @@ inline std::vector<double> crystallite_size_parameters(
     return x;
 }
 
+
 /// Runs f(i) for i in [0, n) on the calling thread
 struct SerialFor {
     template <typename F> void operator()(size_t n, F &&f) const {
@@ -517,6 +518,133 @@ std::vector<AlbedoRow> albedo_table(const Grains &g, const std::vector<double> &
     if (error)
         std::rethrow_exception(error);
     return rows;
+}
+
+/**
+ * Efficiency tables of spatially varying grains (a texture-valued radius): for
+ * each wavelength i and node j of a regular grid in u = ln r, records of 8 values
+ * (Q_ext, Q_sca, dQ_ext/du, dQ_sca/du at node j, then the same at node j + 1), so
+ * that one packet gather gives what cubic Hermite interpolation in u needs. The
+ * node spacing follows the largest size parameter (x |m| of the largest radius at
+ * the shortest wavelength): du = min(0.05, 0.25 / (x |m|)).
+ */
+struct EfficiencyTable {
+    double u0 = 0.0, du = 1.0; ///< ln(r / um) of node 0, spacing
+    size_t nodes = 0;
+    std::vector<double> records; ///< (wavelength i, node j) -> 8 values at 8 (i nodes + j)
+};
+
+/// Efficiencies of one population of radius r (um) for the texture tables: Mie
+/// spheres (index m, or the effective index of agglomerates), or the slab
+inline std::array<double, 4> table_population(const Grains &g, double r, double wl_nm,
+                                              std::complex<double> m, const char *name) {
+    if (g.model == GrainModel::Agglomerate)
+        return population_efficiencies(r, wl_nm,
+                                       effective_index(m, g.agglomerate_fill, g.mixing), name,
+                                       true);
+    if (g.model == GrainModel::Slab)
+        check_slab_index(m, wl_nm);
+    return population(g, r, wl_nm, m, name, true);
+}
+
+/// Records of an efficiency table with node spacing du from r_lo (nodes nodes)
+template <typename ParallelFor>
+void fill_efficiency_table(EfficiencyTable &t, const Grains &g,
+                           const std::vector<double> &wl_nm,
+                           const std::vector<std::complex<double>> &index, const char *name,
+                           ParallelFor &parallel_for) {
+    t.records.assign(wl_nm.size() * t.nodes * 8, 0.0);
+    std::vector<double> q(wl_nm.size() * t.nodes * 4);
+    std::exception_ptr error;
+    std::mutex error_mutex;
+    parallel_for(wl_nm.size(), [&](size_t i) {
+        try {
+            for (size_t j = 0; j < t.nodes; ++j) {
+                double r = std::exp(t.u0 + (double) j * t.du);
+                auto a = table_population(g, r, wl_nm[i], index[i], name);
+                double *out = &q[(i * t.nodes + j) * 4];
+                out[0] = a[0];
+                out[1] = a[1];
+                out[2] = a[2] * r; // dQ/du = r dQ/dr
+                out[3] = a[3] * r;
+            }
+        } catch (...) {
+            std::lock_guard<std::mutex> lock(error_mutex);
+            if (!error)
+                error = std::current_exception();
+        }
+    });
+    if (error)
+        std::rethrow_exception(error);
+    for (size_t i = 0; i < wl_nm.size(); ++i)
+        for (size_t j = 0; j < t.nodes; ++j) {
+            size_t k = std::min(j + 1, t.nodes - 1);
+            for (size_t v = 0; v < 4; ++v) {
+                t.records[(i * t.nodes + j) * 8 + v] = q[(i * t.nodes + j) * 4 + v];
+                t.records[(i * t.nodes + j) * 8 + 4 + v] = q[(i * t.nodes + k) * 4 + v];
+            }
+        }
+}
+
+inline std::pair<double, double> efficiency_at(const EfficiencyTable &t, size_t i, double r);
+
+/**
+ * The efficiency table for radii in [r_lo, r_hi] (um) at the wavelengths wl_nm;
+ * `name` is the property whose texture sets the radii (for errors). The spacing
+ * starts at du = min(0.05, 0.25 / (x |m|)_max) and is halved until the albedo
+ * Q_sca / Q_ext interpolated at every interval's midpoint agrees with Mie theory
+ * there to `tolerance` (relative), or until the table would exceed `max_records`
+ * (wavelengths x nodes); `error` receives the largest midpoint error reached.
+ */
+template <typename ParallelFor = SerialFor>
+EfficiencyTable efficiency_table(const Grains &g, double r_lo, double r_hi,
+                                 const std::vector<double> &wl_nm,
+                                 const std::vector<std::complex<double>> &index,
+                                 const char *name, double tolerance, size_t max_records,
+                                 double &error, ParallelFor &&parallel_for = ParallelFor()) {
+    const double pi = 3.14159265358979323846;
+    double wl_min = *std::min_element(wl_nm.begin(), wl_nm.end()), m_max = 1.0;
+    for (const auto &m : index)
+        m_max = std::max(m_max, std::abs(m));
+    double x_max = 2.0 * pi * r_hi / (wl_min * 1e-3) * m_max;
+    EfficiencyTable t;
+    t.u0 = std::log(r_lo);
+    double du = std::min(0.05, 0.25 / x_max), span = std::log(r_hi) - t.u0;
+    while (true) {
+        t.du = du;
+        t.nodes = std::max((size_t) 2, (size_t) std::ceil(span / t.du - 1e-9) + 1);
+        fill_efficiency_table(t, g, wl_nm, index, name, parallel_for);
+        // the albedo at every midpoint against Mie theory
+        std::vector<double> worst(wl_nm.size(), 0.0);
+        parallel_for(wl_nm.size(), [&](size_t i) {
+            for (size_t j = 0; j + 1 < t.nodes; ++j) {
+                double r = std::exp(t.u0 + ((double) j + 0.5) * t.du);
+                auto exact = table_population(g, r, wl_nm[i], index[i], name);
+                auto [qe, qs] = efficiency_at(t, i, r);
+                double rho = exact[1] / exact[0];
+                worst[i] = std::max(worst[i], std::abs(qs / qe - rho) / std::max(rho, 1e-12));
+            }
+        });
+        error = *std::max_element(worst.begin(), worst.end());
+        size_t next = wl_nm.size() * (2 * t.nodes - 1);
+        if (error <= tolerance || next > max_records)
+            return t;
+        du *= 0.5;
+    }
+}
+
+/// Cubic Hermite interpolation of (Q_ext, Q_sca) in an EfficiencyTable at radius r
+/// (um) and wavelength row i (double precision; the plugin does the same per lane)
+inline std::pair<double, double> efficiency_at(const EfficiencyTable &t, size_t i, double r) {
+    double pos = (std::log(r) - t.u0) / t.du;
+    pos = std::min(std::max(pos, 0.0), (double) (t.nodes - 1) - 1e-9);
+    size_t j = std::min((size_t) pos, t.nodes - 2);
+    double s = pos - (double) j, h00 = (1.0 + 2.0 * s) * (1.0 - s) * (1.0 - s),
+           h10 = s * (1.0 - s) * (1.0 - s), h01 = s * s * (3.0 - 2.0 * s),
+           h11 = s * s * (s - 1.0);
+    const double *rec = &t.records[(i * t.nodes + j) * 8];
+    return { h00 * rec[0] + h10 * t.du * rec[2] + h01 * rec[4] + h11 * t.du * rec[6],
+             h00 * rec[1] + h10 * t.du * rec[3] + h01 * rec[5] + h11 * t.du * rec[7] };
 }
 
 } // namespace powder
