@@ -7,6 +7,7 @@ the known maps the synthetic capture was rendered from.
 """
 
 import math
+import re
 
 import mitsuba as mi
 import numpy as np
@@ -252,7 +253,7 @@ def test_synthetic_capture_is_labelled_and_noisy():
     (lambda c: rf.fit_maps(c["images"][:, :, :, :2], c["directions"]), "images has shape"),
     (lambda c: rf.fit_maps(c["images"], c["directions"][:-1]), "directions has 9 rows"),
     (lambda c: rf.fit_maps(c["images"], np.zeros((10, 3))), r"directions\[0\]"),
-    (lambda c: rf.fit_maps(c["images"], c["directions"], free=["radius"]),
+    (lambda c: rf.fit_maps(c["images"], c["directions"], free=["radius2"]),
      "not fittable per pixel"),
     (lambda c: rf.fit_maps(c["images"], c["directions"],
                            free=["albedo", "amplitude_volume", "g", "extinction",
@@ -290,10 +291,83 @@ def test_synthetic_capture_is_labelled_and_noisy():
     (lambda c: rf.render_capture(c["maps"], c["directions"], gains=np.ones(3)),
      r"gains has shape \(3,\)"),
     (lambda c: rf.render_capture(dict(c["maps"], radius=0.1), c["directions"]),
-     "grain properties are not supported"),
+     "maps has both 'albedo' and 'radius'"),
+    (lambda c: rf.render_capture({k: v for k, v in c["maps"].items() if k != "albedo"}
+                                 | {"radius": 5.0}, c["directions"]),
+     r"radius\[0, 0\] = 5.0 is out of range"),
     (lambda c: rf.synthetic_capture(8, 8, 10, noise=-0.1), "noise = -0.1 is out of range"),
 ])
 def test_bad_input_is_named(call, message):
     cap = rf.synthetic_capture(8, 8, 10, noise=0.0)
     with pytest.raises(ValueError, match=message):
         call(cap)
+
+
+def test_per_pixel_grain_radius_is_recovered():
+    """SYNTHETIC capture of hematite whose grain radius differs per region (the albedo per
+    channel follows from it, GrainAlbedo), 1 % noise, 8 held-out lights: the radius is fitted
+    per pixel (1 number instead of 3 albedos) through the chain rule of rho(r), and recovered
+    per region; calibrated gains; A_v, g and extinction held (not identifiable, module doc).
+    Measured: radius medians within 1 %, normal medians 1.0-2.3 degrees, held-out RMS 1.5 x
+    the noise."""
+    maps, region = rf.synthetic_maps(24, 24, relief=0.25, seed=0)
+    radii = np.array([0.045, 0.06, 0.08, 0.4])
+    maps = dict(maps)
+    del maps["albedo"]
+    maps["radius"] = radii[region]
+    maps["amplitude_surface"] = np.full(region.shape, 1e-5)
+    d = rf.dome_directions(40)
+    clean = rf.render_capture(maps, d, gains=np.full(40, 2.0))
+    images = clean + np.random.default_rng(1).normal(scale=0.01, size=clean.shape).astype(
+        np.float32)
+    held = np.arange(4, 40, 5)
+    used = np.setdiff1d(np.arange(40), held)
+    fixed = {n: maps[n] for n in ("amplitude_volume", "g", "extinction")}
+    res = rf.fit_maps(images[used], d[used],
+                      free=["radius", "amplitude_surface", "correlation_length"], fixed=fixed,
+                      gains="fixed", initial_gains=np.full(len(used), 2.0))
+    assert res.n_parameters == 5 and "radius" in res.maps
+    err = np.degrees(np.arccos(np.clip(np.sum(res.normals * maps["normal"], -1), -1, 1)))
+    for i, r in enumerate(radii):
+        sel = region == i
+        assert np.median(res.maps["radius"][sel]) == pytest.approx(r, rel=0.03), i
+        assert np.median(err[sel]) < 2.5, i
+    # the albedo map is the grains' albedo
+    rho, _ = rf.GrainAlbedo("radius", {})(res.maps["radius"][region == 2])
+    np.testing.assert_allclose(res.albedo[region == 2], rho, rtol=1e-5)
+    pred = res.predict(d[held], gains=np.full(len(held), 2.0))
+    assert np.sqrt(np.mean((pred - images[held]) ** 2)) / 0.01 < 1.7
+
+
+@pytest.mark.parametrize("free,fixed,fragment", [
+    (["radius", "albedo"], {}, "albedo and radius cannot both be given"),
+    (["agglomerate_radius"], {}, "agglomerate_radius cannot be free with grains = 'sphere'"),
+    (["radius"], {"albedo": (0.5, 0.5, 0.5)}, "albedo and radius cannot both be given"),
+])
+def test_per_pixel_grain_errors(free, fixed, fragment):
+    cap = rf.synthetic_capture(4, 4, lights=8)
+    with pytest.raises(ValueError, match=re.escape(fragment)):
+        rf.fit_maps(cap["images"], cap["directions"], free=free, fixed=fixed)
+
+
+def test_grain_albedo_table_against_direct_theory():
+    """GrainAlbedo's interpolation against the plugin's double-precision albedo between nodes."""
+    from mitsuba_powder.grain_optics import GrainOptics
+
+    for name, settings in (("radius", {}), ("radius", {"grains": "slab"}),
+                           ("agglomerate_radius", {"grains": "agglomerate",
+                                                   "agglomerate_fill": 0.4})):
+        table = rf.GrainAlbedo(name, settings)
+        assert table.max_error < 1e-5, (name, settings, table.max_error)
+        r = np.exp(np.random.default_rng(0).uniform(np.log(0.011), np.log(2.9), 50))
+        rho, drho = table(r)
+        optics = GrainOptics(settings)
+        if name == "radius":
+            direct, d = optics.albedo(table.wavelengths, r, derivatives=True)
+            col = 0
+        else:
+            direct, d = optics.albedo(table.wavelengths, np.full(50, 0.017), derivatives=True,
+                                      agglomerate_radius=r, agglomerate_fill=0.4)
+            col = 3
+        np.testing.assert_allclose(rho, direct, rtol=1e-5)
+        np.testing.assert_allclose(drho, d[:, :, col], rtol=2e-3, atol=1e-3)

@@ -144,3 +144,19 @@ def test_python_m_entry_point_lists_the_new_commands():
     proc = subprocess.run([sys.executable, "-m", "mitsuba_powder.cli", "--help"],
                           capture_output=True, text=True, timeout=120)
     assert "fit-maps" in proc.stdout and "relight" in proc.stdout
+
+
+def test_scene_with_a_radius_map_equals_relight(tmp_path):
+    """Per-pixel grain radius: the scene gives the plugin a radius texture (its own albedo
+    table), relight the fit's (GrainAlbedo): equal to the tables' accuracy."""
+    result = known_maps(12, 16)
+    region = (np.arange(12)[:, None] >= 6) * 2 + (np.arange(16)[None, :] >= 8)
+    result.maps["radius"] = np.array([0.04, 0.07, 0.2, 0.6], np.float32)[region]
+    result.settings["material"] = "hematite"
+    write_maps(result, tmp_path)
+    text = (tmp_path / "scene.xml").read_text()
+    assert 'name="radius"' in text and 'name="albedo"' not in text
+    expected = result.predict(LIGHT[None])[0]
+    render_scene(tmp_path / "scene.xml", tmp_path / "relit.exr", variant="llvm_ad_rgb", spp=2,
+                 defines={"lx": repr(LIGHT[0]), "ly": repr(LIGHT[1]), "lz": repr(LIGHT[2])})
+    np.testing.assert_allclose(read_exr(tmp_path / "relit.exr"), expected, rtol=1e-3, atol=1e-6)

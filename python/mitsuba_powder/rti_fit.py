@@ -101,8 +101,13 @@ __all__ = ["DEFAULT_FREE", "MAP_PROPERTIES", "MapsResult", "dome_directions", "f
 MAP_PROPERTIES = ("amplitude_volume", "g", "extinction", "tau_o", "thickness",
                   "amplitude_surface", "correlation_length", "sigma")
 
+#: Grain sizes that may vary per pixel instead of the albedo: the albedo per channel is then
+#: the grains' (``radius`` of spheres or slab grains, ``agglomerate_radius``), from
+#: :class:`GrainAlbedo`
+GRAIN_MAPS = ("radius", "agglomerate_radius")
+
 #: Properties the fit can free besides the normal and the albedo (per channel)
-FREE_PROPERTIES = ("albedo",) + MAP_PROPERTIES
+FREE_PROPERTIES = ("albedo",) + MAP_PROPERTIES + GRAIN_MAPS
 
 #: Default free set (besides the normal): see the module docstring and docs for the evidence
 DEFAULT_FREE = ["albedo", "amplitude_surface", "correlation_length"]
@@ -119,7 +124,96 @@ SPECS: dict[str, ParamSpec] = {
     # lights of the synthetic capture, RMS / noise: bound 3 um -> 578, 1.5 -> 1.43, the
     # dome's 0.86 -> 1.13)
     "correlation_length": ParamSpec(0.05, 1.5, True, 0.4),
+    **{k: FITTABLE[k] for k in GRAIN_MAPS},
 }
+
+
+#: Plugin properties that describe the grains: the evaluator takes the albedo per pixel
+#: instead (``material``, ``eta``, ``k`` stay: they set tau_o)
+GRAIN_SETTINGS = ("grains", "mixing", "agglomerate_fill", "agglomerate_radius", "radius",
+                  "radius2", "fraction2")
+
+
+def grain_map_name(settings: Mapping) -> str:
+    """The per-pixel grain size of these settings: ``agglomerate_radius`` for agglomerates,
+    else ``radius``."""
+    return "agglomerate_radius" if settings.get("grains") == "agglomerate" else "radius"
+
+
+class GrainAlbedo:
+    """The albedo per RGB channel of grains whose size varies per pixel: rho(r) and d rho / d r
+    at the plugin's ``rgb_wavelengths``, by cubic Hermite interpolation in ln r of a table of
+    the plugin's own double-precision albedo (:class:`mitsuba_powder.grain_optics.GrainOptics`,
+    the C++ grain models) over the fittable range of the size (:data:`SPECS`), 3000 nodes.
+    ``max_error`` is the largest relative difference from direct theory at the midpoints of the
+    table's intervals (measured when built).
+
+    Args:
+        name: ``radius`` (``grains`` = ``sphere`` or ``slab``) or ``agglomerate_radius``.
+        settings: the plugin properties held for every pixel (``material``, ``eta``/``k``,
+            ``grains``, ``agglomerate_fill``, ``mixing``, ``rgb_wavelengths``).
+    """
+
+    NODES = 3000
+
+    def __init__(self, name: str, settings: Mapping):
+        from .grain_optics import GrainOptics
+
+        if name not in GRAIN_MAPS:
+            raise ValueError(f"{name!r} is not a per-pixel grain size; choose among "
+                             f"{GRAIN_MAPS}")
+        model = settings.get("grains", "sphere")
+        if (name == "agglomerate_radius") != (model == "agglomerate"):
+            need = "agglomerate" if name == "agglomerate_radius" else "sphere or slab"
+            raise ValueError(f"a per-pixel {name} needs grains = {need} (got grains = "
+                             f"{model!r})")
+        self.name = name
+        wl = settings.get("rgb_wavelengths", (611.3, 549.1, 464.3))
+        if isinstance(wl, str):
+            wl = [float(v) for v in wl.replace(",", " ").split()]
+        self.wavelengths = [float(v) for v in wl]
+        optics = GrainOptics(dict(settings))
+        spec = SPECS[name]
+        self.u0, self.u1 = math.log(spec.lower), math.log(spec.upper)
+        self.du = (self.u1 - self.u0) / (self.NODES - 1)
+        nodes = np.exp(self.u0 + self.du * np.arange(self.NODES))
+        mids = np.exp(self.u0 + self.du * (np.arange(self.NODES - 1) + 0.5))
+
+        def table(r: np.ndarray, derivatives: bool):
+            crystallite = float(settings.get("radius", 0.017))
+            if name == "radius":
+                return optics.albedo(self.wavelengths, r, derivatives=derivatives)
+            return optics.albedo(self.wavelengths, np.full(len(r), crystallite),
+                                 derivatives=derivatives, agglomerate_radius=r,
+                                 agglomerate_fill=settings.get("agglomerate_fill"))
+
+        rho, d = table(nodes, True)
+        column = 0 if name == "radius" else 3
+        self.rho = rho                                   # (N, 3)
+        self.drho_du = d[:, :, column] * nodes[:, None]  # d rho / d ln r
+        exact = table(mids, False)[0]
+        approx, _ = self(mids)
+        self.max_error = float(np.max(np.abs(approx / exact - 1.0)))
+
+    def __call__(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rho (P, 3), d rho / d r (P, 3)) at sizes r (P,) in um (inside the fittable range).
+        """
+        r = np.asarray(r, dtype=np.float64)
+        t = np.clip((np.log(r) - self.u0) / self.du, 0.0, self.NODES - 1 - 1e-9)
+        j = np.minimum(t.astype(np.int64), self.NODES - 2)
+        s = (t - j)[:, None]
+        h00, h10 = (1 + 2 * s) * (1 - s) ** 2, s * (1 - s) ** 2
+        h01, h11 = s * s * (3 - 2 * s), s * s * (s - 1)
+        p0, p1, m0, m1 = self.rho[j], self.rho[j + 1], self.drho_du[j], self.drho_du[j + 1]
+        rho = h00 * p0 + h10 * self.du * m0 + h01 * p1 + h11 * self.du * m1
+        # derivative of the interpolant with respect to ln r, then r
+        d00, d10 = 6 * s * s - 6 * s, 3 * s * s - 4 * s + 1
+        d01, d11 = -6 * s * s + 6 * s, 3 * s * s - 2 * s
+        drho = (d00 * p0 / self.du + d10 * m0 + d01 * p1 / self.du + d11 * m1) / r[:, None]
+        return rho, drho
+
+#: Grain sizes tried per pixel for the start of a per-pixel grain size (log grid)
+START_SIZES = 40
 
 #: Largest normal slope |n_x / n_z|, |n_y / n_z| (tilt up to 85 degrees along an axis)
 SLOPE_LIMIT = 11.4
@@ -218,6 +312,10 @@ _PHYSICAL = {
     "amplitude_surface": (0.0, math.inf, False, True),
     "correlation_length": (0.0, math.inf, True, True),
     "sigma": (0.0, math.pi / 2, True, False),
+    # per-pixel grain sizes: the range of GrainAlbedo's table (the fit's)
+    "radius": (FITTABLE["radius"].lower, FITTABLE["radius"].upper, False, False),
+    "agglomerate_radius": (FITTABLE["agglomerate_radius"].lower,
+                           FITTABLE["agglomerate_radius"].upper, False, False),
 }
 
 
@@ -251,7 +349,8 @@ class _Evaluator:
                              "llvm_ad_rgb or cuda_ad_rgb)")
         self.variant = variant
         self.varying = list(varying)
-        props = {k: v for k, v in settings.items() if k not in ("type", "albedo")}
+        props = {k: v for k, v in settings.items()
+                 if k not in ("type", "albedo") + GRAIN_SETTINGS}
         for name in self.varying:  # present at load so that mi.traverse exposes them
             props.setdefault(name, SPECS[name].start)
             if name == "thickness":
@@ -329,10 +428,20 @@ def _chunks(count: int, lights: int, max_lanes: int) -> list[slice]:
 def _split_maps(maps: Mapping, shape: tuple[int, int]
                 ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], dict]:
     """maps -> normals (H, W, 3), albedo (H, W, 3), per-pixel float properties, settings."""
-    if "normal" not in maps or "albedo" not in maps:
+    grain = grain_map_name(maps)
+    if "normal" not in maps or ("albedo" not in maps and grain not in maps):
         raise ValueError(f"maps has keys {sorted(maps)}; it needs 'normal' (H, W, 3) and "
-                         "'albedo' (H, W, 3) or (3,)")
+                         f"'albedo' (H, W, 3) or (3,), or '{grain}' (H, W) or a number")
     normals = _check_normals(maps["normal"], shape)
+    if grain in maps and "albedo" in maps:
+        raise ValueError(f"maps has both 'albedo' and '{grain}': the grains set the albedo; "
+                         "give one of them")
+    if grain in maps:  # the albedo of the grains, per pixel
+        size = _property_map(grain, maps[grain], shape)
+        rho, _ = GrainAlbedo(grain, {k: v for k, v in maps.items()
+                                     if k not in ("normal", "albedo", grain)
+                                     and np.ndim(v) == 0})(size.ravel())
+        maps = {**maps, "albedo": rho.reshape(shape + (3,))}
     albedo = np.asarray(maps["albedo"], dtype=np.float64)
     if albedo.shape == (3,):
         albedo = np.broadcast_to(albedo, shape + (3,))
@@ -346,9 +455,11 @@ def _split_maps(maps: Mapping, shape: tuple[int, int]
             continue
         if key in MAP_PROPERTIES:
             values[key] = _property_map(key, value, shape)
-        elif key in ("radius", "radius2", "fraction2", "grains", "agglomerate_radius"):
-            raise ValueError(f"maps[{key!r}]: grain properties are not supported per pixel "
-                             "(the albedo is given per pixel instead)")
+        elif key == grain:
+            continue  # turned into the albedo above
+        elif np.ndim(value) != 0 and key in GRAIN_SETTINGS:
+            raise ValueError(f"maps[{key!r}]: only {grain} may vary per pixel among the grain "
+                             "properties (give the others as numbers)")
         else:
             settings[key] = value
     return normals, albedo, values, settings
@@ -493,8 +604,10 @@ class _PixelProblem:
 
     def __init__(self, ev: _Evaluator, observed: np.ndarray, weights: np.ndarray,
                  directions: np.ndarray, gains: np.ndarray, layout: list[tuple[str, ParamSpec]],
-                 fixed: Mapping[str, np.ndarray], fixed_albedo: np.ndarray | None = None):
+                 fixed: Mapping[str, np.ndarray], fixed_albedo: np.ndarray | None = None,
+                 grain: GrainAlbedo | None = None):
         self.ev = ev
+        self.grain = grain                  # the albedo from a free grain size
         self.fixed_albedo = fixed_albedo    # (P, 3) when the albedo is not free
         self.observed = observed            # (P, K, 3) float64
         self.sqrt_w = np.sqrt(weights)      # (P, K)
@@ -522,9 +635,13 @@ class _PixelProblem:
             dxdy[name] = spec.dx_dy(x)
             if name.startswith("albedo"):
                 alb_cols.append(x)
+            elif name in GRAIN_MAPS:
+                albedo, self.drho = self.grain(x)
+                values[name] = x  # (not a property of the evaluator: its map is kept)
             else:
                 values[name] = x
-        albedo = np.stack(alb_cols, axis=1) if alb_cols else self.fixed_albedo[idx]
+        if albedo is None:
+            albedo = np.stack(alb_cols, axis=1) if alb_cols else self.fixed_albedo[idx]
         return idx, slopes, albedo, values, dxdy
 
     def _residual(self, idx: np.ndarray, value: np.ndarray) -> np.ndarray:
@@ -541,9 +658,10 @@ class _PixelProblem:
     def jacobian(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         idx, slopes, albedo, values, dxdy = self.unpack(y)
         names = ["slope_x", "slope_y"]
-        if any(n.startswith("albedo") for n, _ in self.layout):
+        if any(n.startswith("albedo") or n in GRAIN_MAPS for n, _ in self.layout):
             names.append("albedo")
-        names += [n for n, _ in self.layout[2:] if not n.startswith("albedo")]
+        names += [n for n, _ in self.layout[2:]
+                  if not n.startswith("albedo") and n not in GRAIN_MAPS]
         value, grads = self.ev(slopes, albedo, values, self.directions, names)
         self.evaluations += 1 + len(names)
         b, k = len(idx), len(self.directions)
@@ -553,6 +671,9 @@ class _PixelProblem:
             if name.startswith("albedo"):
                 c = int(name[-1])
                 jac[:, :, c, j] = grads["albedo"][:, :, c] * scale[:, :, 0] * dxdy[name][:, None]
+            elif name in GRAIN_MAPS:  # chain rule through rho(r) per channel
+                jac[:, :, :, j] = (grads["albedo"] * self.drho[:, None, :] * scale *
+                                   dxdy[name][:, None, None])
             else:
                 jac[:, :, :, j] = grads[name] * scale * (dxdy[name][:, None, None]
                                                          if name in dxdy else 1.0)
@@ -606,7 +727,9 @@ class MapsResult:
         normals = np.where(self.mask[..., None], self.normals, np.array([0.0, 0.0, 1.0]))
         albedo = np.where(self.mask[..., None], self.albedo,
                           np.nanmedian(self.albedo[self.mask], axis=0))
-        out: dict = {"normal": normals, "albedo": np.clip(albedo, 0.0, 1.0)}
+        out: dict = {"normal": normals}
+        if not any(name in self.maps for name in GRAIN_MAPS):  # else the grains set it
+            out["albedo"] = np.clip(albedo, 0.0, 1.0)
         for k, v in self.maps.items():
             out[k] = np.where(self.mask, v, np.nanmedian(v[self.mask]))
         out.update(self.settings)
@@ -785,11 +908,27 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
             raise ValueError(f"property {name!r} is both free and fixed")
     fixed_maps = {n: _property_map(n, v, (h, w))[mask] for n, v in fixed.items()
                   if n in MAP_PROPERTIES}
-    settings = {n: v for n, v in fixed.items() if n not in MAP_PROPERTIES and n != "albedo"}
+    grain_name = grain_map_name(fixed)
+    wrong = [n for n in GRAIN_MAPS if n in free and n != grain_name]
+    if wrong:
+        raise ValueError(f"{wrong[0]} cannot be free with grains = "
+                         f"{fixed.get('grains', 'sphere')!r}; free {grain_name} instead")
+    settings = {n: v for n, v in fixed.items()
+                if n not in MAP_PROPERTIES and n != "albedo" and n != grain_name}
+    grain = None
+    if grain_name in free or grain_name in fixed:
+        if "albedo" in free or "albedo" in fixed:
+            raise ValueError(f"albedo and {grain_name} cannot both be given: the grains set the "
+                             "albedo per pixel; free or fix one of them")
+        grain = GrainAlbedo(grain_name, settings)
     fixed_albedo = None
-    if "albedo" not in free:
+    if grain is not None and grain_name in fixed:
+        size = _property_map(grain_name, fixed[grain_name], (h, w))[mask]
+        fixed_albedo = grain(size)[0]
+    elif "albedo" not in free and grain_name not in free:
         if "albedo" not in fixed:
-            raise ValueError("albedo is neither free nor fixed; give fixed={'albedo': ...}")
+            raise ValueError(f"albedo is neither free nor fixed; give fixed={{'albedo': ...}} "
+                             f"or free (or fix) the grain size {grain_name}")
         a = np.asarray(fixed["albedo"], dtype=np.float64)
         a = np.broadcast_to(a, (h, w, 3)) if a.shape == (3,) else a
         if a.shape != (h, w, 3):
@@ -797,7 +936,7 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         for c in range(3):
             _property_map("albedo", a[..., c], (h, w))
         fixed_albedo = a[mask]
-    others = [n for n in free if n != "albedo"]
+    others = [n for n in free if n != "albedo" and n not in GRAIN_MAPS]
     varying = others + list(fixed_maps)
     ev = _Evaluator(varying, settings, variant)
     layout: list[tuple[str, ParamSpec]] = [
@@ -805,6 +944,8 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         ("slope_y", ParamSpec(-SLOPE_LIMIT, SLOPE_LIMIT, False, 0.0))]
     if "albedo" in free:
         layout += [(f"albedo{c}", SPECS["albedo"]) for c in range(3)]
+    if grain_name in free:
+        layout.append((grain_name, SPECS[grain_name]))
     specs = dict(SPECS)
     lc_max = max_correlation_length(d)
     lc = specs["correlation_length"]
@@ -824,7 +965,12 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
     saturated = np.any(obs >= saturation, axis=2)
     start_values = {n: SPECS[n].start for n in others}
     table_values = {**start_values, **{n: float(np.median(v)) for n, v in fixed_maps.items()}}
-    table = _albedo_table(ev, table_values, d) if "albedo" in free else None
+    table = (_albedo_table(ev, table_values, d)
+             if "albedo" in free or grain_name in free else None)
+    size_grid = (np.exp(np.linspace(math.log(SPECS[grain_name].lower),
+                                    math.log(SPECS[grain_name].upper), 400))
+                 if grain_name in free else None)
+    size_rho = grain(size_grid)[0] if size_grid is not None else None
 
     def start(gain: np.ndarray, weight: np.ndarray) -> np.ndarray:
         """Lambertian start of every pixel under the gains ``gain`` (on the used lights)."""
@@ -835,9 +981,31 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         y[:, :2] = np.clip(_slopes(n0), -SLOPE_LIMIT, SLOPE_LIMIT)
         col = 2
         if table is not None:
-            for c in range(3):
-                y[:, col + c] = np.interp(refl[:, c], table[1][:, c], table[0])
-            col += 3
+            albedo0 = np.stack([np.interp(refl[:, c], table[1][:, c], table[0])
+                                for c in range(3)], axis=1)
+            if size_grid is None:
+                y[:, col:col + 3] = albedo0
+                col += 3
+            else:
+                # rho(r) has several branches: every pixel tries a log grid of sizes with the
+                # Lambertian normal (one model evaluation per size, all pixels at once) and
+                # starts from the one of least weighted residual
+                slopes0 = np.clip(_slopes(n0), -SLOPE_LIMIT, SLOPE_LIMIT)
+                vals0 = {n: np.full(npix, specs[n].start) for n in others}
+                vals0.update(fixed_maps)
+                best, best_cost = np.zeros(npix, dtype=np.int64), np.full(npix, np.inf)
+                for i in range(0, len(size_grid), 400 // START_SIZES):
+                    rho = np.broadcast_to(size_rho[i], (npix, 3))
+                    cost = np.zeros(npix)
+                    for sl in _chunks(npix, k, max_lanes):
+                        v, _ = ev(slopes0[sl], rho[sl], {n: x[sl] for n, x in vals0.items()},
+                                  d)
+                        cost[sl] = np.sum(weight[sl, :, None] *
+                                          (v * gain[None, :, None] - obs[sl]) ** 2, axis=(1, 2))
+                    better = cost < best_cost
+                    best[better], best_cost[better] = i, cost[better]
+                y[:, col] = specs[grain_name].to_y(size_grid[best])
+                col += 1
         for name in others:
             y[:, col] = specs[name].to_y(specs[name].start)
             col += 1
@@ -867,7 +1035,7 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         for s in chunks:
             prob = _PixelProblem(ev, obs[s], wt[s], d, g, layout,
                                  {n: v[s] for n, v in fixed_maps.items()},
-                                 None if fixed_albedo is None else fixed_albedo[s])
+                                 None if fixed_albedo is None else fixed_albedo[s], grain)
             # every round starts from the Lambertian start under the current gains: a warm
             # start would keep pixels in the surface-lobe basin the previous gains led them to
             y_chunk = y_start[s].copy()
@@ -904,7 +1072,7 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         out[mask] = values
         return out
 
-    prob = _PixelProblem(ev, obs, wt, d, g, layout, fixed_maps, fixed_albedo)
+    prob = _PixelProblem(ev, obs, wt, d, g, layout, fixed_maps, fixed_albedo, grain)
     y_all = y.copy()
     y_all[:, -1] = np.arange(npix)
     _, slopes, albedo, values, _ = prob.unpack(y_all)

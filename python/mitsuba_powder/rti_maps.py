@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .rti import Capture, read_lp, write_images
-from .rti_fit import MapsResult
+from .rti_fit import GRAIN_MAPS, GRAIN_SETTINGS, MapsResult
 from .variants import use_variant
 
 #: File written for the scene's normal map (tangent space, encoded (n + 1) / 2)
@@ -86,6 +86,9 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
                 f'            </transform>\n'
                 f'        </texture>\n')
 
+    grain_maps = [name for name in result.maps if name in GRAIN_MAPS]
+    if not grain_maps:  # the albedo map replaces the grains: the plugin takes one or the other
+        settings = {k: v for k, v in settings.items() if k not in GRAIN_SETTINGS}
     props = []
     for key, value in settings.items():
         if isinstance(value, bool) or value is None:
@@ -96,8 +99,8 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
             props.append(f'            <float name="{key}" value="{value!r}"/>')
     maps = "".join("    " + line + "\n" for name in sorted(result.maps)
                    for line in bitmap(name, f"{name}.exr").splitlines())
-    albedo = "".join("    " + line + "\n"
-                     for line in bitmap("albedo", "albedo.exr").splitlines())
+    albedo = "" if grain_maps else "".join(
+        "    " + line + "\n" for line in bitmap("albedo", "albedo.exr").splitlines())
     return f"""<!--
   Powder maps fitted by mitsuba-powder fit-maps ({w} x {h} px). Render under a light from
   (lx, ly, lz) (towards the light; x right, y up, z towards the camera), e.g.
@@ -174,7 +177,9 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
     maps = result.as_maps()
     for name in result.maps:
         _write_exr(out / f"{name}.exr", np.asarray(maps[name], dtype=np.float32))
-    _write_exr(out / "albedo.exr", maps["albedo"])
+    # the albedo per channel (with a grain-size map: the grains', for reading only)
+    _write_exr(out / "albedo.exr", np.clip(np.where(result.mask[..., None], result.albedo, 0.0),
+                                           0.0, 1.0))
     normals = np.asarray(maps["normal"], dtype=np.float32)
     _write_exr(out / "normal.exr", normals)
     _write_exr(out / NORMAL_TANGENT, 0.5 * (normals + 1.0))
