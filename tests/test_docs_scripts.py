@@ -49,3 +49,13 @@ def test_grain_colour_script_quick(tmp_path):
     table = (tmp_path / "grain_colour_table.md").read_text()
     assert "| sphere | 0.01 |" in table and "| slab |" in table and "| agglomerate, fill" in table
     assert (tmp_path / "figures" / "grain_colour.png").stat().st_size > 5000
+
+
+def test_rti_figure_script_on_a_small_synthetic_capture(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "rti_figure.py"),
+                           "--size", "16", "--out", str(tmp_path)], capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((tmp_path / "rti_synthetic.json").read_text())
+    assert set(summary["rmse_8bit"]) == {"powder", "ptm", "hsh", "lambertian_clamped"}
+    assert (tmp_path / "rti_synthetic.png").stat().st_size > 5000
