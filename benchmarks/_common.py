@@ -108,3 +108,21 @@ def print_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> None:
             v = r.get(key)
             cells.append(f"{'-' if v is None else format(v, fmt):>{w}s}")
         print("  ".join(cells))
+
+
+def random_pairs(n: int, variant: str, seed: int = 0):
+    """``n`` random direction pairs on the upper hemisphere (cosines in [0.1, 1]) as
+    ``(si, wo)`` of the current Mitsuba variant; in spectral variants each lane gets four
+    random wavelengths in 360-830 nm."""
+    import mitsuba as mi
+
+    rng = np.random.default_rng(seed)
+    mu = rng.uniform(0.1, 1, (2, n))
+    phi = rng.uniform(0, 2 * np.pi, (2, n))
+    s = np.sqrt(1 - mu**2)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(s[0] * np.cos(phi[0]), s[0] * np.sin(phi[0]), mu[0])
+    if "spectral" in variant:
+        si.wavelengths = mi.UnpolarizedSpectrum(*rng.uniform(360, 830, (4, n)))
+    wo = mi.Vector3f(s[1] * np.cos(phi[1]), s[1] * np.sin(phi[1]), mu[1])
+    return si, wo

@@ -14,24 +14,15 @@ import platform
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from _common import arg_parser, timeit, use_variant
+from _common import arg_parser, random_pairs, timeit, use_variant
 
 
 def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:
     use_variant(variant)
     bsdf = mi.load_dict({"type": "powder", "radius": radius})
     params = mi.traverse(bsdf)
-    rng = np.random.default_rng(0)
-    mu = rng.uniform(0.1, 1, (2, n_dirs))
-    phi = rng.uniform(0, 2 * np.pi, (2, n_dirs))
-    s = np.sqrt(1 - mu**2)
-    si = dr.zeros(mi.SurfaceInteraction3f, n_dirs)
-    si.wi = mi.Vector3f(s[0] * np.cos(phi[0]), s[0] * np.sin(phi[0]), mu[0])
-    if "spectral" in variant:
-        si.wavelengths = mi.UnpolarizedSpectrum(*rng.uniform(360, 830, (4, n_dirs)))
-    wo = mi.Vector3f(s[1] * np.cos(phi[1]), s[1] * np.sin(phi[1]), mu[1])
+    si, wo = random_pairs(n_dirs, variant, seed=0)
     toggle = [radius, radius * 1.01]
 
     def update():

@@ -21,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, barh_figure, timeit, use_variant
+from _common import arg_parser, barh_figure, random_pairs, timeit, use_variant
 
 TEXTURED = {"amplitude_volume": (0.5, 1.5), "g": (-0.3, 0.6), "extinction": (0.3, 3.0),
             "tau_o": (0.5, 5.0), "amplitude_surface": (1e-4, 1e-2),
@@ -38,16 +38,10 @@ def bitmap(lo: float, hi: float, size: int, seed: int = 0) -> dict:
 
 
 def lanes(n: int, variant: str):
-    rng = np.random.default_rng(1)
-    mu = rng.uniform(0.1, 1, (2, n))
-    phi = rng.uniform(0, 2 * np.pi, (2, n))
-    s = np.sqrt(1 - mu**2)
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(s[0] * np.cos(phi[0]), s[0] * np.sin(phi[0]), mu[0])
+    """Random direction pairs (_common.random_pairs) at random uv."""
+    si, wo = random_pairs(n, variant, seed=1)
+    rng = np.random.default_rng(2)
     si.uv = mi.Point2f(rng.uniform(0, 1, n), rng.uniform(0, 1, n))
-    if "spectral" in variant:
-        si.wavelengths = mi.UnpolarizedSpectrum(*rng.uniform(360, 830, (4, n)))
-    wo = mi.Vector3f(s[1] * np.cos(phi[1]), s[1] * np.sin(phi[1]), mu[1])
     return si, wo
 
 

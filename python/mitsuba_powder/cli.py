@@ -165,6 +165,17 @@ def _load_data(path: str, args: argparse.Namespace):
     return data
 
 
+def _add_capture_options(p: argparse.ArgumentParser, use: str) -> None:
+    """The capture argument and its options (commands that read RTI captures)."""
+    p.add_argument("capture", help="the capture's .lp file (first line the count, then "
+                                   "'filename lx ly lz'); images beside it")
+    p.add_argument("--encoding", choices=("srgb", "linear"), default="srgb",
+                   help="srgb: file values are sRGB-encoded (linearised on read); linear: "
+                        "value / full scale is linear (default srgb)")
+    p.add_argument("--mask", default=None,
+                   help=f"mask image (PNG): pixels above half scale are {use}")
+
+
 def _add_data_options(p: argparse.ArgumentParser) -> None:
     """Options of the commands that read measurement files."""
     p.add_argument("--convention", choices=("signed", "physical"), default=None,
@@ -380,6 +391,11 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _names(text: str | None) -> list[str] | None:
+    """A comma-separated --free list (None when not given)."""
+    return [n.strip() for n in text.split(",") if n.strip()] if text else None
+
+
 def _fixed_properties(items: list[str]) -> dict:
     """--set NAME=VALUE items as a property dict."""
     fixed = {}
@@ -411,7 +427,7 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
     k, h, w, c = capture.images.shape
     print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
           f"{capture.bit_depth} bit, encoding {capture.encoding}")
-    free = [n.strip() for n in args.free.split(",") if n.strip()] if args.free else None
+    free = _names(args.free)
     result = fit_maps(capture.images, capture.directions, free=free, mask=capture.mask,
                       fixed=_fixed_properties(args.set), gains=args.gains,
                       max_iterations=args.iterations, rounds=args.rounds, progress=print)
@@ -438,7 +454,7 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     from .rti_compare import baseline_fitter, compare, write_comparison
 
     names = [m.strip() for m in args.models.split(",") if m.strip()]
-    free = [n.strip() for n in args.free.split(",") if n.strip()] if args.free else None
+    free = _names(args.free)
     models = {name: (_powder_fitter(free, _fixed_properties(args.set))
                      if name == "powder" else baseline_fitter(name)) for name in names}
     capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
@@ -627,15 +643,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compare-maps", help="held-out-light error of per-pixel models (PTM, "
                                             "HSH, Lambertian) on an RTI capture")
-    p.add_argument("capture", help="the capture's .lp file (first line the count, then "
-                                   "'filename lx ly lz'); images beside it")
     p.add_argument("--out", required=True,
                    help="output folder (compare.md, compare.json, error maps)")
-    p.add_argument("--encoding", choices=("srgb", "linear"), default="srgb",
-                   help="srgb: file values are sRGB-encoded (linearised on read); linear: "
-                        "value / full scale is linear (default srgb)")
-    p.add_argument("--mask", default=None, help="mask image (PNG): pixels above half scale "
-                                                "are scored")
+    _add_capture_options(p, "scored")
     p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
                    help="comma-separated: ptm, hsh, lambertian, lambertian_clamped, powder "
                         "(the per-pixel powder fit of fit-maps)")
@@ -653,8 +663,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fit-maps", help="fit a normal and powder parameters to every pixel of "
                                         "an RTI capture; write EXR maps and a scene")
-    p.add_argument("capture", help="the capture's .lp file (first line the count, then "
-                                   "'filename lx ly lz'); images beside it")
     p.add_argument("--out", required=True,
                    help="output folder: <property>.exr, albedo.exr, normal.exr, residual.exr, "
                         "fit.json, scene.xml")
@@ -662,11 +670,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated properties fitted per pixel besides the normal "
                         "(default: albedo, amplitude_surface, correlation_length; "
                         "docs/rti.md says why)")
-    p.add_argument("--encoding", choices=("srgb", "linear"), default="srgb",
-                   help="srgb: file values are sRGB-encoded (linearised on read); linear: "
-                        "value / full scale is linear (default srgb)")
-    p.add_argument("--mask", default=None, help="mask image (PNG): pixels above half scale "
-                                                "are fitted")
+    _add_capture_options(p, "fitted")
     p.add_argument("--gains", choices=("fit", "fixed"), default="fit",
                    help="per-light gains shared by all pixels: fitted (mean 1) or all 1")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
