@@ -360,4 +360,5 @@ def test_cli_compare_maps(tmp_path, capsys):
     assert {r["model"] for r in doc["rows"]} == {"ptm", "hsh"}
     assert doc["capture"]["bit_depth"] == 16 and (out / "compare.md").is_file()
     assert main(["compare-maps", str(lp), "--out", str(out), "--models", "rbf"]) == 2
-    assert "model 'rbf' is not a baseline" in capsys.readouterr().err
+    assert "unknown ['rbf']; valid models are ptm, hsh, lambertian, lambertian_clamped, powder" \
+        in capsys.readouterr().err

@@ -455,6 +455,12 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
 
     names = [m.strip() for m in args.models.split(",") if m.strip()]
     free = _names(args.free)
+    from .rti_baselines import BASELINES
+
+    unknown = [n for n in names if n != "powder" and n not in BASELINES]
+    if unknown or not names:
+        raise ValueError(f"--models {args.models!r}: unknown {unknown}; valid models are "
+                         f"{', '.join(list(BASELINES) + ['powder'])}")
     models = {name: (_powder_fitter(free, _fixed_properties(args.set))
                      if name == "powder" else baseline_fitter(name)) for name in names}
     capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
