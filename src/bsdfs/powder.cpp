@@ -119,6 +119,23 @@ inline constexpr Spec Table[Count] = {
 
 } // namespace powder_param
 
+/// Runs row(i) for i in [0, n) on Dr.Jit's thread pool (the grain tables' rows);
+/// below 32 rows (RGB and mono tables) on the calling thread: too few to share
+struct DrJitParallelFor {
+    template <typename Row> void operator()(size_t n, Row &&row) const {
+        if (n < 32) {
+            for (size_t i = 0; i < n; ++i)
+                row(i);
+            return;
+        }
+        dr::parallel_for(dr::blocked_range<size_t>(0, n, 4),
+                         [&](const dr::blocked_range<size_t> &range) {
+                             for (size_t i = range.begin(); i != range.end(); ++i)
+                                 row(i);
+                         });
+    }
+};
+
 /**
  * The smallest and largest values a texture holds: every floating-point
  * parameter it and the objects it holds expose through traverse() (a bitmap's
@@ -1114,20 +1131,8 @@ private:
         if constexpr (dr::is_diff_v<Float>)
             for (auto &gp : grain_params)
                 tangents |= dr::grad_enabled(*gp.first);
-        auto parallel_for = [](size_t n, auto &&row) {
-            if (n < 32) { // RGB and mono: too few rows to share
-                for (size_t i = 0; i < n; ++i)
-                    row(i);
-                return;
-            }
-            dr::parallel_for(dr::blocked_range<size_t>(0, n, 8),
-                             [&](const dr::blocked_range<size_t> &range) {
-                                 for (size_t i = range.begin(); i != range.end(); ++i)
-                                     row(i);
-                             });
-        };
         std::vector<powder::AlbedoRow> rows = powder::albedo_table(
-            grains, m_table_wavelengths, m_index, tangents, parallel_for);
+            grains, m_table_wavelengths, m_index, tangents, DrJitParallelFor());
 
         size_t n = rows.size();
         std::vector<ScalarFloat> rho(n), qe1(n), qs1(n), qe2(n), qs2(n);
@@ -1226,18 +1231,11 @@ private:
         hi_t = std::max(hi_t, lo_t * 1.001);
         powder::Grains grains{ 1.0, 1.0, 0.0, false, m_grain_model,
                                1.0, value_of(m_agglomerate_fill), m_mixing };
-        auto parallel_for = [](size_t n, auto &&row) {
-            dr::parallel_for(dr::blocked_range<size_t>(0, n, 4),
-                             [&](const dr::blocked_range<size_t> &range) {
-                                 for (size_t i = range.begin(); i != range.end(); ++i)
-                                     row(i);
-                             });
-        };
         double error = 0.0;
         m_grain_table = powder::efficiency_table(
             grains, lo_t, hi_t, m_table_wavelengths, m_index,
             powder_param::Table[radius_id()].name, GrainTableTolerance, GrainTableRecords,
-            error, parallel_for);
+            error, DrJitParallelFor());
         if (error > GrainTableTolerance)
             Log(Warn, "powder: the albedo table of radii %g-%g um is accurate to %.2g "
                       "(relative, at the midpoints of its %zu nodes), not %g: the radii span "

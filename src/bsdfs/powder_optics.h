@@ -492,6 +492,25 @@ struct SerialFor {
     }
 };
 
+/// Runs row(i) for i in [0, n) through parallel_for (rows may run on several
+/// threads) and rethrows here the first exception any row threw
+template <typename ParallelFor, typename Row>
+void for_each_row(size_t n, ParallelFor &&parallel_for, Row &&row) {
+    std::exception_ptr error;
+    std::mutex error_mutex;
+    parallel_for(n, [&](size_t i) {
+        try {
+            row(i);
+        } catch (...) {
+            std::lock_guard<std::mutex> lock(error_mutex);
+            if (!error)
+                error = std::current_exception();
+        }
+    });
+    if (error)
+        std::rethrow_exception(error);
+}
+
 /**
  * The albedo table at the wavelengths wl_nm (grain index `index` at each).
  * Rows are independent: parallel_for(n, row) may run them on several threads
@@ -504,19 +523,9 @@ std::vector<AlbedoRow> albedo_table(const Grains &g, const std::vector<double> &
                                     bool derivatives,
                                     ParallelFor &&parallel_for = ParallelFor()) {
     std::vector<AlbedoRow> rows(wl_nm.size());
-    std::exception_ptr error;
-    std::mutex error_mutex;
-    parallel_for(rows.size(), [&](size_t i) {
-        try {
-            rows[i] = albedo_row(g, wl_nm[i], index[i], derivatives);
-        } catch (...) {
-            std::lock_guard<std::mutex> lock(error_mutex);
-            if (!error)
-                error = std::current_exception();
-        }
+    for_each_row(rows.size(), parallel_for, [&](size_t i) {
+        rows[i] = albedo_row(g, wl_nm[i], index[i], derivatives);
     });
-    if (error)
-        std::rethrow_exception(error);
     return rows;
 }
 
@@ -524,9 +533,8 @@ std::vector<AlbedoRow> albedo_table(const Grains &g, const std::vector<double> &
  * Efficiency tables of spatially varying grains (a texture-valued radius): for
  * each wavelength i and node j of a regular grid in u = ln r, records of 8 values
  * (Q_ext, Q_sca, dQ_ext/du, dQ_sca/du at node j, then the same at node j + 1), so
- * that one packet gather gives what cubic Hermite interpolation in u needs. The
- * node spacing follows the largest size parameter (x |m| of the largest radius at
- * the shortest wavelength): du = min(0.05, 0.25 / (x |m|)).
+ * that one packet gather gives what cubic Hermite interpolation in u needs (the
+ * node spacing: efficiency_table).
  */
 struct EfficiencyTable {
     double u0 = 0.0, du = 1.0; ///< ln(r / um) of node 0, spacing
@@ -555,27 +563,17 @@ void fill_efficiency_table(EfficiencyTable &t, const Grains &g,
                            ParallelFor &parallel_for) {
     t.records.assign(wl_nm.size() * t.nodes * 8, 0.0);
     std::vector<double> q(wl_nm.size() * t.nodes * 4);
-    std::exception_ptr error;
-    std::mutex error_mutex;
-    parallel_for(wl_nm.size(), [&](size_t i) {
-        try {
-            for (size_t j = 0; j < t.nodes; ++j) {
-                double r = std::exp(t.u0 + (double) j * t.du);
-                auto a = table_population(g, r, wl_nm[i], index[i], name);
-                double *out = &q[(i * t.nodes + j) * 4];
-                out[0] = a[0];
-                out[1] = a[1];
-                out[2] = a[2] * r; // dQ/du = r dQ/dr
-                out[3] = a[3] * r;
-            }
-        } catch (...) {
-            std::lock_guard<std::mutex> lock(error_mutex);
-            if (!error)
-                error = std::current_exception();
+    for_each_row(wl_nm.size(), parallel_for, [&](size_t i) {
+        for (size_t j = 0; j < t.nodes; ++j) {
+            double r = std::exp(t.u0 + (double) j * t.du);
+            auto a = table_population(g, r, wl_nm[i], index[i], name);
+            double *out = &q[(i * t.nodes + j) * 4];
+            out[0] = a[0];
+            out[1] = a[1];
+            out[2] = a[2] * r; // dQ/du = r dQ/dr
+            out[3] = a[3] * r;
         }
     });
-    if (error)
-        std::rethrow_exception(error);
     for (size_t i = 0; i < wl_nm.size(); ++i)
         for (size_t j = 0; j < t.nodes; ++j) {
             size_t k = std::min(j + 1, t.nodes - 1);
@@ -616,7 +614,7 @@ EfficiencyTable efficiency_table(const Grains &g, double r_lo, double r_hi,
         fill_efficiency_table(t, g, wl_nm, index, name, parallel_for);
         // the albedo at every midpoint against Mie theory
         std::vector<double> worst(wl_nm.size(), 0.0);
-        parallel_for(wl_nm.size(), [&](size_t i) {
+        for_each_row(wl_nm.size(), parallel_for, [&](size_t i) {
             for (size_t j = 0; j + 1 < t.nodes; ++j) {
                 double r = std::exp(t.u0 + ((double) j + 0.5) * t.du);
                 auto exact = table_population(g, r, wl_nm[i], index[i], name);
