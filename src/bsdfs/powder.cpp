@@ -537,18 +537,25 @@ public:
         for (size_t i = 0; i < powder_param::Count; ++i) {
             if (!in_use((powder_param::Id) i))
                 continue;
-            if (m_textures[i])
+            if (m_textures[i]) {
                 check_texture((powder_param::Id) i);
-            else
-                powder_param::check_range(powder_param::Table[i].name,
-                                          value_of(this->*member((powder_param::Id) i)),
-                                          powder_param::Table[i].range);
+                continue;
+            }
+            const Float &v = this->*member((powder_param::Id) i);
+            check_lanes((powder_param::Id) i, v);
+            // the grain tables are built from one value: one per lane would be ignored
+            if (is_grain_param((powder_param::Id) i) && dr::width(v) > 1)
+                Throw("powder: property \"%s\" holds %zu values (one per lane); a grain "
+                      "property takes one value, or a texture for one per surface point",
+                      powder_param::Table[i].name, dr::width(v));
         }
 
         // An infinite layer needs no thickness factor (and 0 * inf would
-        // poison the gradients of the extinction); a thickness texture is finite
+        // poison the gradients of the extinction); a thickness texture is finite.
+        // With one thickness per lane, the factor is evaluated when any is finite (it
+        // is 1 in the infinite lanes)
         m_finite_thickness = textured(powder_param::Thickness) ||
-                             std::isfinite(value_of(m_thickness));
+                             std::isfinite(std::get<0>(lane_range(m_thickness)));
 
         // Opaque first: the Mie tangents below must not bake the radius in as a literal
         // (that would compile a new kernel for every radius an optimiser tries)
@@ -611,7 +618,7 @@ public:
             UnpolarizedSpectrum x0 = 2.f * dr::detach(m_volume.c0) * dr::detach(m_volume.tau);
             m_coherent_saturated = true;
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
-                m_coherent_saturated &= value_of(x0[c]) >= 18.0;
+                m_coherent_saturated &= std::get<0>(lane_range(x0[c])) >= 18.0; // every lane
         }
 
         // Detached means, used only to weight the sampling lobes
@@ -1894,8 +1901,43 @@ private:
 
     // ------------------------------------------------------ input checking
 
+    /// Whether a parameter describes the grains (it sets the Mie / grain tables)
+    static bool is_grain_param(powder_param::Id p) {
+        return p == powder_param::Radius || p == powder_param::Radius2 ||
+               p == powder_param::Fraction2 || p == powder_param::AgglomerateRadius ||
+               p == powder_param::AgglomerateFill;
+    }
+
+    /// The value of a parameter that holds one value (lane 0 of a JIT array)
     template <typename T> static double value_of(const T &v) {
         return (double) dr::slice(v);
+    }
+
+    /// Smallest and largest value of a parameter over its lanes, and whether one is NaN:
+    /// a parameter set through mi.traverse may hold one value per lane (batched
+    /// evaluations, e.g. mitsuba_powder.rti_fit), and every lane must be checked
+    template <typename T> static std::tuple<double, double, bool> lane_range(const T &v) {
+        if constexpr (dr::is_jit_v<T>) {
+            if (dr::width(v) > 1) {
+                T d = dr::detach(v);
+                return { (double) dr::slice(dr::min(d)), (double) dr::slice(dr::max(d)),
+                         (bool) dr::slice(dr::any(dr::isnan(d))) };
+            }
+        }
+        double x = value_of(v);
+        return { x, x, std::isnan(x) };
+    }
+
+    /// Check every lane of a parameter against its range (the project's error names
+    /// the first value out of range: the NaN, the smallest or the largest)
+    static void check_lanes(powder_param::Id p, const Float &v) {
+        auto [lo, hi, nan] = lane_range(v);
+        const powder_param::Spec &spec = powder_param::Table[p];
+        if (nan)
+            powder_param::check_range(spec.name, std::numeric_limits<double>::quiet_NaN(),
+                                      spec.range);
+        powder_param::check_range(spec.name, lo, spec.range);
+        powder_param::check_range(spec.name, hi, spec.range);
     }
 
     /// The member holding a float parameter of the table powder_param::Table
