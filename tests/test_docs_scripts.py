@@ -59,3 +59,19 @@ def test_rti_figure_script_on_a_small_synthetic_capture(tmp_path):
     summary = json.loads((tmp_path / "rti_synthetic.json").read_text())
     assert set(summary["rmse_8bit"]) == {"powder", "ptm", "hsh", "lambertian_clamped"}
     assert (tmp_path / "rti_synthetic.png").stat().st_size > 5000
+
+
+def test_rti_identifiability_script(tmp_path):
+    """The bounds of docs/rti.md: with 8 lights near the camera every bound is under 20 %
+    and the darkest region's extinction bound is a third of the plain dome's (0.14 vs 0.44)."""
+    out = tmp_path / "bounds.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" /
+                                                "rti_identifiability.py"), "--json", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| dome 10-80 degrees | 0 | 0.045 |" in proc.stdout
+    bounds = json.loads(out.read_text())["bounds"]
+    dome, near = bounds["dome 10-80 degrees"], bounds["32 on the dome + 8 at 82-88 degrees"]
+    for region in range(4):
+        assert max(near[region]) < 0.2, region
+    assert near[0][2] < 0.5 * dome[0][2]
