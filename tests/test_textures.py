@@ -197,6 +197,8 @@ GRAIN_CASES = [
     ("slab", {"radius": [0.5, 1.0, 2.0, 3.0]}, {"grains": "slab", "eta": 1.6, "k": 0.002}),
     ("agglomerate", {"agglomerate_radius": [0.08, 0.15, 0.3, 0.5]},
      {"grains": "agglomerate", "agglomerate_fill": 0.4, "radius": 0.01}),
+    ("agglomerate fill", {"agglomerate_fill": [0.15, 0.4, 0.7, 0.95]},
+     {"grains": "agglomerate", "agglomerate_radius": 0.2, "radius": 0.01}),
 ]
 GRAIN_IDS = [c[0] for c in GRAIN_CASES]
 WAVELENGTHS = (450.0, 550.0, 610.0, 700.0)  # whole nm: no interpolation along the 1 nm grid
@@ -322,40 +324,43 @@ def test_grain_texture_edits_outside_the_table_rebuild_it():
         np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)
 
 
-def test_agglomerate_fill_cannot_be_a_texture():
+def test_agglomerate_fill_and_radius_cannot_both_be_textures():
     use_variant("llvm_ad_rgb")
-    with pytest.raises(RuntimeError, match='"agglomerate_fill" cannot be a texture'):
-        mi.load_dict({"type": "powder", "grains": "agglomerate", "agglomerate_radius": 0.2,
+    with pytest.raises(RuntimeError, match='"agglomerate_fill" and "agglomerate_radius" are '
+                                           'both textures'):
+        mi.load_dict({"type": "powder", "grains": "agglomerate",
+                      "agglomerate_radius": bitmap([0.1, 0.2, 0.3, 0.4]),
                       "agglomerate_fill": bitmap([0.3, 0.4, 0.5, 0.6])})
 
 
-def test_grain_texture_outside_the_size_parameter_range_is_an_error():
+@pytest.mark.parametrize("textured,held", [("agglomerate_fill", "agglomerate_radius"),
+                                           ("agglomerate_radius", "agglomerate_fill")])
+def test_the_held_agglomerate_property_is_not_differentiable(textured, held):
+    """The grain table runs over the texture's values at one value of the other agglomerate
+    property: its gradient would be silently lost, so enabling it is an error."""
     use_variant("llvm_ad_rgb")
-    with pytest.raises(RuntimeError, match='"radius"'):
-        grain_instance({"radius": [0.02, 0.03, 0.04, 50.0]}, {})
+    values = [0.3, 0.4, 0.5, 0.6] if textured == "agglomerate_fill" else [0.1, 0.2, 0.3, 0.4]
+    bsdf = mi.load_dict({"type": "powder", "grains": "agglomerate", "radius": 0.01,
+                         "agglomerate_radius": 0.2, "agglomerate_fill": 0.5,
+                         textured: bitmap(values)})
+    params = mi.traverse(bsdf)
+    dr.enable_grad(params[held])
+    with pytest.raises(RuntimeError, match=f'"{held}" is not differentiable while '
+                                           f'"{textured}" is a texture'):
+        params.update()
 
 
-def test_conserving_energy_needs_uniform_parameters():
+def test_an_edit_of_the_held_agglomerate_radius_rebuilds_the_fill_table():
     use_variant("llvm_ad_rgb")
-    with pytest.raises(RuntimeError, match='"conserving" needs a spatially uniform "g"'):
-        mi.load_dict({"type": "powder", "energy": "conserving",
-                      "g": bitmap([0.1, 0.2, 0.3, 0.4])})
-
-
-def test_checkerboard_texture():
-    """Any Mitsuba texture works (checkerboard), its values range-checked too."""
-    use_variant("llvm_ad_rgb")
-    bsdf = mi.load_dict({"type": "powder", "albedo": 0.7,
-                         "amplitude_volume": {"type": "checkerboard",
-                                              "color0": 0.5, "color1": 1.5}})
-    wi, wo = directions(8)
-    a = evaluate(bsdf, wi, wo, (0.25, 0.25))
-    b = evaluate(bsdf, wi, wo, (0.75, 0.25))
-    ref = {v: evaluate(mi.load_dict({"type": "powder", "albedo": 0.7, "amplitude_volume": v}),
-                       wi, wo, (0.25, 0.25)) for v in (0.5, 1.5)}
-    assert sorted([a.sum(), b.sum()]) == pytest.approx(
-        [ref[0.5].sum(), ref[1.5].sum()], rel=1e-5)
-    assert a.sum() != pytest.approx(b.sum(), rel=1e-3)
-    with pytest.raises(RuntimeError, match='"g" is a texture with values from'):
-        mi.load_dict({"type": "powder", "g": {"type": "checkerboard", "color0": 0.2,
-                                              "color1": 1.2}})
+    fills = [0.2, 0.4, 0.6, 0.8]
+    extra = {"grains": "agglomerate", "radius": 0.01, "agglomerate_radius": 0.2}
+    bsdf = grain_instance({"agglomerate_fill": fills}, extra)
+    params = mi.traverse(bsdf)
+    params["agglomerate_radius"] = 0.35
+    params.update()
+    order = texel_order(fills)
+    for uv, texel in zip(texel_uv(), order):
+        expected = grain_albedo_direct({"agglomerate_fill": fills},
+                                       {**extra, "agglomerate_radius": 0.35}, texel,
+                                       channel_wavelengths())
+        np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)

@@ -251,7 +251,7 @@ Dry powder (:monosp:`powder`)
    - |exposed|, |differentiable|
 
  * - agglomerate_fill
-   - |float|
+   - |float| or |texture|
    - Volume fill f of crystallites in an agglomerate, ``grains`` = ``agglomerate`` only
      (Default: 0.5, range (0, 1])
    - |exposed|, |differentiable|
@@ -1184,7 +1184,8 @@ private:
     /// Whether a grain property that sets the albedo is a texture
     bool grain_textured() const {
         return !m_albedo &&
-               (agglomerate() ? textured(powder_param::AgglomerateRadius)
+               (agglomerate() ? textured(powder_param::AgglomerateRadius) ||
+                                    textured(powder_param::AgglomerateFill)
                               : textured(powder_param::Radius) ||
                                     (m_two_populations && (textured(powder_param::Radius2) ||
                                                            textured(powder_param::Fraction2))));
@@ -1195,13 +1196,25 @@ private:
         return agglomerate() ? powder_param::AgglomerateRadius : powder_param::Radius;
     }
 
-    /// Smallest and largest radius (um) of a radius parameter, texture or float
+    /// Whether the grain texture table runs over the fill of agglomerates (an
+    /// agglomerate_fill texture) rather than over a radius
+    bool fill_table() const {
+        return agglomerate() && textured(powder_param::AgglomerateFill);
+    }
+
+    /// The grain parameter the texture table runs over (its texture sets the lanes)
+    powder_param::Id table_param() const {
+        return fill_table() ? powder_param::AgglomerateFill : radius_id();
+    }
+
+    /// Smallest and largest value of a grain parameter (a radius in um, or the fill),
+    /// texture or float
     std::pair<double, double> radius_range(powder_param::Id p) const {
         if (textured(p)) {
             TextureValues<Float, Spectrum> v = texture_values(p);
             if (!v.found)
                 Throw("powder: the texture of property \"%s\" exposes no values, so the "
-                      "radii to tabulate are unknown; use a bitmap or a constant texture",
+                      "values to tabulate are unknown; use a bitmap or a constant texture",
                       powder_param::Table[p].name);
             return { v.lo, v.hi };
         }
@@ -1217,14 +1230,43 @@ private:
      * populations (grain_texture_albedo). Differentiable through the interpolation.
      */
     void update_grain_texture_table() {
-        auto [lo, hi] = radius_range(radius_id());
-        if (m_two_populations) {
+        bool fill = fill_table();
+        if (fill && textured(powder_param::AgglomerateRadius))
+            Throw("powder: properties \"agglomerate_fill\" and \"agglomerate_radius\" "
+                  "are both textures; the albedo table of spatially varying agglomerates "
+                  "runs over one of them: give the other as a float");
+        // the table holds the other agglomerate property at one value: its gradient
+        // would be lost
+        powder_param::Id held = fill ? powder_param::AgglomerateRadius
+                                     : powder_param::AgglomerateFill;
+        if constexpr (dr::is_diff_v<Float>)
+            if (agglomerate() && dr::grad_enabled(this->*member(held)))
+                Throw("powder: property \"%s\" is not differentiable while \"%s\" is a "
+                      "texture (the albedo table runs over the texture's values at one "
+                      "%s)", powder_param::Table[held].name,
+                      powder_param::Table[table_param()].name,
+                      powder_param::Table[held].name);
+        double held_value = agglomerate() ? value_of(this->*member(held)) : 0.0;
+        auto [lo, hi] = radius_range(table_param());
+        if (m_two_populations && !agglomerate()) {
             auto [lo2, hi2] = radius_range(powder_param::Radius2);
             lo = std::min(lo, lo2);
             hi = std::max(hi, hi2);
         }
-        if (m_grain_table.nodes > 0 && lo >= m_grain_table_lo && hi <= m_grain_table_hi)
-            return; // the current table covers the radii
+        if (m_grain_table.nodes > 0 && lo >= m_grain_table_lo && hi <= m_grain_table_hi &&
+            held_value == m_grain_table_held)
+            return; // the current table covers the values
+        m_grain_table_held = held_value;
+        if (fill) {
+            // fills in (0, 1]: widened by 0.05 each way where they can be
+            double lo_t = std::max(lo - 0.05, 0.5 * lo), hi_t = std::min(hi + 0.05, 1.0);
+            hi_t = std::max(hi_t, lo_t + 1e-3);
+            if (hi_t > 1.0) { lo_t = std::max(lo_t - 1e-3, 0.5 * lo_t); hi_t = 1.0; }
+            powder::Grains grains{ 1.0, 1.0, 0.0, false, m_grain_model,
+                                   value_of(m_agglomerate_radius), 0.5, m_mixing };
+            build_grain_texture_table(grains, lo, hi, lo_t, hi_t, powder::TableAxis::Fill);
+            return;
+        }
         double lo_t = lo / 1.25, hi_t = hi * 1.25;
         if (m_grain_model != powder::GrainModel::Slab) {
             // keep the widened range inside the size parameters Mie accepts
@@ -1238,17 +1280,25 @@ private:
         hi_t = std::max(hi_t, lo_t * 1.001);
         powder::Grains grains{ 1.0, 1.0, 0.0, false, m_grain_model,
                                1.0, value_of(m_agglomerate_fill), m_mixing };
+        build_grain_texture_table(grains, lo, hi, lo_t, hi_t, powder::TableAxis::LogRadius);
+    }
+
+    /// Build the grain texture table over [lo_t, hi_t] of its variable (covering the
+    /// texture values [lo, hi]) and upload its records
+    void build_grain_texture_table(const powder::Grains &grains, double lo, double hi,
+                                   double lo_t, double hi_t, powder::TableAxis axis) {
+        bool fill = axis == powder::TableAxis::Fill;
         double error = 0.0;
         m_grain_table = powder::efficiency_table(
             grains, lo_t, hi_t, m_table_wavelengths, m_index,
-            powder_param::Table[radius_id()].name, GrainTableTolerance, GrainTableRecords,
-            error, DrJitParallelFor());
+            powder_param::Table[table_param()].name, GrainTableTolerance, GrainTableRecords,
+            error, DrJitParallelFor(), axis);
         if (error > GrainTableTolerance)
-            Log(Warn, "powder: the albedo table of radii %g-%g um is accurate to %.2g "
-                      "(relative, at the midpoints of its %zu nodes), not %g: the radii span "
-                      "too many Mie resonances for %zu records; narrow the texture's range",
-                lo_t, hi_t, error, m_grain_table.nodes, GrainTableTolerance,
-                GrainTableRecords);
+            Log(Warn, "powder: the albedo table of %s %g-%g%s is accurate to %.2g "
+                      "(relative, at the midpoints of its %zu nodes), not %g: the values "
+                      "span too many Mie resonances for %zu records; narrow the texture's "
+                      "range", fill ? "fills" : "radii", lo_t, hi_t, fill ? "" : " um",
+                error, m_grain_table.nodes, GrainTableTolerance, GrainTableRecords);
         m_grain_table_lo = lo_t;
         m_grain_table_hi = hi_t;
         std::vector<ScalarFloat> rec(m_grain_table.records.begin(),
@@ -1258,7 +1308,7 @@ private:
         m_grain_u0 = (ScalarFloat) m_grain_table.u0;
         m_grain_du = (ScalarFloat) m_grain_table.du;
         // a mean albedo for the sampling weights only: at the middle of the range
-        double r_mid = std::sqrt(lo * hi), rho = 0.0;
+        double r_mid = fill ? 0.5 * (lo + hi) : std::sqrt(lo * hi), rho = 0.0;
         for (size_t i = 0; i < m_table_wavelengths.size(); ++i) {
             auto [qe, qs] = powder::efficiency_at(m_grain_table, i, r_mid);
             rho += qs / qe;
@@ -1270,13 +1320,15 @@ private:
         m_qext_table = m_qsca_table = m_qext2_table = m_qsca2_table = dr::zeros<FloatStorage>(n);
     }
 
-    /// (Q_ext, Q_sca) per channel of grains of radius r (um, per lane) from the
-    /// efficiency table: cubic Hermite in ln r, and in spectral variants linear in
-    /// wavelength on the 1 nm grid, as the constant tables
+    /// (Q_ext, Q_sca) per channel of grains of radius r (um, per lane; or of the
+    /// fill of agglomerates, fill_table()) from the efficiency table: cubic Hermite
+    /// in ln r (in the fill), and in spectral variants linear in wavelength on the
+    /// 1 nm grid, as the constant tables
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
     grain_efficiencies(const Float &r, const SurfaceInteraction3f &si, Mask active) const {
         uint32_t nodes = (uint32_t) m_grain_table.nodes;
-        Float t = dr::clip((dr::log(r) - m_grain_u0) * (1.f / m_grain_du), 0.f,
+        Float u = m_grain_table.axis == powder::TableAxis::Fill ? r : dr::log(r);
+        Float t = dr::clip((u - m_grain_u0) * (1.f / m_grain_du), 0.f,
                            (float) (nodes - 1) - 1e-3f);
         UInt32 j = UInt32(dr::floor(dr::detach(t)));
         Float s = t - Float(j), one_s = 1.f - s,
@@ -1313,7 +1365,7 @@ private:
     /// Q_sca,j / sum_j (f_j / r_j) Q_ext,j (MODEL.md; slab: Q_ext = 1, Q_sca = rho)
     UnpolarizedSpectrum grain_texture_albedo(const SurfaceInteraction3f &si,
                                              Mask active) const {
-        Float r1 = at(radius_id(), si, active);
+        Float r1 = at(table_param(), si, active);
         auto [qe1, qs1] = grain_efficiencies(r1, si, active);
         if (!m_two_populations)
             return qs1 / qe1;
@@ -1997,10 +2049,6 @@ private:
      */
     void check_texture(powder_param::Id p) const {
         const powder_param::Spec &spec = powder_param::Table[p];
-        if (p == powder_param::AgglomerateFill)
-            Throw("powder: property \"agglomerate_fill\" cannot be a texture (the albedo "
-                  "tables of spatially varying grains are tabulated over the radius at one "
-                  "fill); give a float");
         TextureValues<Float, Spectrum> values = texture_values(p);
         if (!values.found) {
             Log(Warn, "powder: the texture of property \"%s\" exposes no values, so its "
@@ -2155,6 +2203,7 @@ private:
     powder::EfficiencyTable m_grain_table;
     FloatStorage m_grain_records;
     double m_grain_table_lo = 0.0, m_grain_table_hi = 0.0, m_grain_rho_mean = 0.5;
+    double m_grain_table_held = 0.0; ///< agglomerates: the held property's value in the table
     ScalarFloat m_grain_u0 = 0.f, m_grain_du = 1.f;
     powder::GrainModel m_grain_model = powder::GrainModel::Sphere;
     powder::Mixing m_mixing = powder::Mixing::Bruggeman;

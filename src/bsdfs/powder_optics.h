@@ -529,18 +529,46 @@ std::vector<AlbedoRow> albedo_table(const Grains &g, const std::vector<double> &
     return rows;
 }
 
+/// The variable an efficiency table is regular in: u = ln(r / um) of a grain radius,
+/// or u = the fill of agglomerates (at the agglomerate radius of the Grains)
+enum class TableAxis { LogRadius, Fill };
+
 /**
- * Efficiency tables of spatially varying grains (a texture-valued radius): for
- * each wavelength i and node j of a regular grid in u = ln r, records of 8 values
- * (Q_ext, Q_sca, dQ_ext/du, dQ_sca/du at node j, then the same at node j + 1), so
- * that one packet gather gives what cubic Hermite interpolation in u needs (the
- * node spacing: efficiency_table).
+ * Efficiency tables of spatially varying grains (a texture-valued radius, or the
+ * fill of agglomerates): for each wavelength i and node j of a regular grid in u
+ * (TableAxis), records of 8 values (Q_ext, Q_sca, dQ_ext/du, dQ_sca/du at node j,
+ * then the same at node j + 1), so that one packet gather gives what cubic Hermite
+ * interpolation in u needs (the node spacing: efficiency_table).
  */
 struct EfficiencyTable {
-    double u0 = 0.0, du = 1.0; ///< ln(r / um) of node 0, spacing
+    TableAxis axis = TableAxis::LogRadius;
+    double u0 = 0.0, du = 1.0; ///< u of node 0, spacing
     size_t nodes = 0;
     std::vector<double> records; ///< (wavelength i, node j) -> 8 values at 8 (i nodes + j)
 };
+
+/// (Q_ext, Q_sca, dQ_ext/dfill, dQ_sca/dfill) of agglomerates of radius
+/// g.agglomerate_radius and fill `fill`; the derivatives by a central difference of
+/// step 1e-5 in the fill (one-sided at the ends of (0, 1])
+inline std::array<double, 4> fill_population(const Grains &g, double fill, double wl_nm,
+                                             std::complex<double> m) {
+    auto at = [&](double f) {
+        return population_efficiencies(g.agglomerate_radius, wl_nm,
+                                       effective_index(m, f, g.mixing), "agglomerate_radius",
+                                       false);
+    };
+    const double h = 1e-5;
+    double lo = std::max(fill - h, 0.5 * fill), hi = std::min(fill + h, 1.0);
+    auto a = at(fill), b = at(lo), c = at(hi);
+    return { a[0], a[1], (c[0] - b[0]) / (hi - lo), (c[1] - b[1]) / (hi - lo) };
+}
+
+/// Efficiencies of one population at the table variable v (the radius r in um, or
+/// the fill) and dQ/du: Mie spheres (index m, or the effective index of
+/// agglomerates), or the slab
+inline std::array<double, 4> table_point(const Grains &g, TableAxis axis, double v,
+                                         double wl_nm, std::complex<double> m,
+                                         const char *name);
 
 /// Efficiencies of one population of radius r (um) for the texture tables: Mie
 /// spheres (index m, or the effective index of agglomerates), or the slab
@@ -555,7 +583,21 @@ inline std::array<double, 4> table_population(const Grains &g, double r, double 
     return population(g, r, wl_nm, m, name, true);
 }
 
-/// Records of an efficiency table with node spacing du from r_lo (nodes nodes)
+inline std::array<double, 4> table_point(const Grains &g, TableAxis axis, double v,
+                                         double wl_nm, std::complex<double> m,
+                                         const char *name) {
+    if (axis == TableAxis::Fill)
+        return fill_population(g, v, wl_nm, m);
+    auto a = table_population(g, v, wl_nm, m, name);
+    return { a[0], a[1], a[2] * v, a[3] * v }; // dQ/du = r dQ/dr
+}
+
+/// The table variable (radius in um, or fill) at u
+inline double table_value(TableAxis axis, double u) {
+    return axis == TableAxis::Fill ? u : std::exp(u);
+}
+
+/// Records of an efficiency table with node spacing du from u0 (nodes nodes)
 template <typename ParallelFor>
 void fill_efficiency_table(EfficiencyTable &t, const Grains &g,
                            const std::vector<double> &wl_nm,
@@ -565,13 +607,9 @@ void fill_efficiency_table(EfficiencyTable &t, const Grains &g,
     std::vector<double> q(wl_nm.size() * t.nodes * 4);
     for_each_row(wl_nm.size(), parallel_for, [&](size_t i) {
         for (size_t j = 0; j < t.nodes; ++j) {
-            double r = std::exp(t.u0 + (double) j * t.du);
-            auto a = table_population(g, r, wl_nm[i], index[i], name);
-            double *out = &q[(i * t.nodes + j) * 4];
-            out[0] = a[0];
-            out[1] = a[1];
-            out[2] = a[2] * r; // dQ/du = r dQ/dr
-            out[3] = a[3] * r;
+            double v = table_value(t.axis, t.u0 + (double) j * t.du);
+            auto a = table_point(g, t.axis, v, wl_nm[i], index[i], name);
+            std::copy(a.begin(), a.end(), &q[(i * t.nodes + j) * 4]);
         }
     });
     for (size_t i = 0; i < wl_nm.size(); ++i)
@@ -584,40 +622,52 @@ void fill_efficiency_table(EfficiencyTable &t, const Grains &g,
         }
 }
 
-inline std::pair<double, double> efficiency_at(const EfficiencyTable &t, size_t i, double r);
+inline std::pair<double, double> efficiency_at(const EfficiencyTable &t, size_t i, double v);
 
 /**
- * The efficiency table for radii in [r_lo, r_hi] (um) at the wavelengths wl_nm;
- * `name` is the property whose texture sets the radii (for errors). The spacing
- * starts at du = min(0.05, 0.25 / (x |m|)_max) and is halved until the albedo
- * Q_sca / Q_ext interpolated at every interval's midpoint agrees with Mie theory
- * there to `tolerance` (relative), or until the table would exceed `max_records`
- * (wavelengths x nodes); `error` receives the largest midpoint error reached.
+ * The efficiency table for values in [lo, hi] of its variable (TableAxis: radii in
+ * um, or fills of agglomerates of radius g.agglomerate_radius) at the wavelengths
+ * wl_nm; `name` is the property whose texture sets the values (for errors). The
+ * spacing starts at du = min(0.05, 0.25 / (x |m|)_max) (radius) or 0.05 (fill) and
+ * is halved until the albedo Q_sca / Q_ext interpolated at every interval's midpoint
+ * agrees with theory there to `tolerance` (relative), or until the table would
+ * exceed `max_records` (wavelengths x nodes); `error` receives the largest midpoint
+ * error reached.
  */
 template <typename ParallelFor = SerialFor>
-EfficiencyTable efficiency_table(const Grains &g, double r_lo, double r_hi,
+EfficiencyTable efficiency_table(const Grains &g, double lo, double hi,
                                  const std::vector<double> &wl_nm,
                                  const std::vector<std::complex<double>> &index,
                                  const char *name, double tolerance, size_t max_records,
-                                 double &error, ParallelFor &&parallel_for = ParallelFor()) {
+                                 double &error, ParallelFor &&parallel_for = ParallelFor(),
+                                 TableAxis axis = TableAxis::LogRadius) {
     const double pi = 3.14159265358979323846;
     double wl_min = *std::min_element(wl_nm.begin(), wl_nm.end()), m_max = 1.0;
     for (const auto &m : index)
         m_max = std::max(m_max, std::abs(m));
-    double x_max = 2.0 * pi * r_hi / (wl_min * 1e-3) * m_max;
     EfficiencyTable t;
-    t.u0 = std::log(r_lo);
-    double du = std::min(0.05, 0.25 / x_max), span = std::log(r_hi) - t.u0;
+    t.axis = axis;
+    double du, span;
+    if (axis == TableAxis::Fill) {
+        t.u0 = lo;
+        du = 0.05;
+        span = hi - lo;
+    } else {
+        double x_max = 2.0 * pi * hi / (wl_min * 1e-3) * m_max;
+        t.u0 = std::log(lo);
+        du = std::min(0.05, 0.25 / x_max);
+        span = std::log(hi) - t.u0;
+    }
     while (true) {
         t.du = du;
         t.nodes = std::max((size_t) 2, (size_t) std::ceil(span / t.du - 1e-9) + 1);
         fill_efficiency_table(t, g, wl_nm, index, name, parallel_for);
-        // the albedo at every midpoint against Mie theory
+        // the albedo at every midpoint against theory
         std::vector<double> worst(wl_nm.size(), 0.0);
         for_each_row(wl_nm.size(), parallel_for, [&](size_t i) {
             for (size_t j = 0; j + 1 < t.nodes; ++j) {
-                double r = std::exp(t.u0 + ((double) j + 0.5) * t.du);
-                auto exact = table_population(g, r, wl_nm[i], index[i], name);
+                double r = table_value(axis, t.u0 + ((double) j + 0.5) * t.du);
+                auto exact = table_point(g, axis, r, wl_nm[i], index[i], name);
                 auto [qe, qs] = efficiency_at(t, i, r);
                 double rho = exact[1] / exact[0];
                 worst[i] = std::max(worst[i], std::abs(qs / qe - rho) / std::max(rho, 1e-12));
@@ -631,10 +681,11 @@ EfficiencyTable efficiency_table(const Grains &g, double r_lo, double r_hi,
     }
 }
 
-/// Cubic Hermite interpolation of (Q_ext, Q_sca) in an EfficiencyTable at radius r
-/// (um) and wavelength row i (double precision; the plugin does the same per lane)
-inline std::pair<double, double> efficiency_at(const EfficiencyTable &t, size_t i, double r) {
-    double pos = (std::log(r) - t.u0) / t.du;
+/// Cubic Hermite interpolation of (Q_ext, Q_sca) in an EfficiencyTable at the value
+/// v of its variable (radius in um, or fill) and wavelength row i (double precision;
+/// the plugin does the same per lane)
+inline std::pair<double, double> efficiency_at(const EfficiencyTable &t, size_t i, double v) {
+    double pos = ((t.axis == TableAxis::Fill ? v : std::log(v)) - t.u0) / t.du;
     pos = std::min(std::max(pos, 0.0), (double) (t.nodes - 1) - 1e-9);
     size_t j = std::min((size_t) pos, t.nodes - 2);
     double s = pos - (double) j, h00 = (1.0 + 2.0 * s) * (1.0 - s) * (1.0 - s),
