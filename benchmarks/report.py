@@ -45,6 +45,9 @@ def tables(results: Path) -> dict[str, str]:
         ("eval_cost_vs_diffuse", "eval cost / diffuse", ".2f"),
         ("sample_cost_vs_diffuse", "sample cost / diffuse", ".2f"),
         ("eval_cost_vs_principled", "eval cost / principled", ".2f")])
+    out["eval_breakdown"] = md_table(load("eval_breakdown")["rows"], [
+        ("variant", "variant", "s"), ("configuration", "configuration", "s"),
+        ("ms", "eval ms", ".2f"), ("cost_vs_principled", "eval cost / principled", ".2f")])
     py = load("python_bsdf")
     out["python_bsdf"] = md_table(py["rows"], [
         ("variant", "variant", "s"), ("implementation", "implementation", "s"),

@@ -52,7 +52,7 @@ def test_the_saturated_coherent_path_is_exercised():
 def test_one_value_per_lane_takes_every_lane_into_account(variant, name):
     """Parameters set through mi.traverse with one value per lane (batched fits, e.g.
     rti_fit): the saturated-cone shortcut and the range checks must hold for every lane, not
-    only the first. Lane 0 is saturated (2 c0 tau_o >= 18), the others are not; each lane
+    only the first. Lane 0 is saturated (2 c0 tau_o >= 18), some others are not; each lane
     must equal a separately loaded instance (the shortcut once took lane 0 for all: 0.1 % off
     near back-scattering for albedo 0.99)."""
     use_variant(variant)
@@ -98,4 +98,50 @@ def test_grain_properties_take_one_value():
     params["radius"] = mi.Float(np.array([0.05, 0.08], dtype=np.float32))
     with pytest.raises(RuntimeError, match=r'"radius" holds 2 values \(one per lane\); a grain '
                                            r'property takes one value, or a texture'):
+        params.update()
+
+
+def test_one_thickness_per_lane_with_infinite_lanes():
+    """Lanes of infinite and finite thickness in one call: each equals its own instance, and
+    the gradient with respect to the extinction is finite (no 0 x inf) and matches central
+    differences."""
+    use_variant("llvm_ad_rgb")
+    thickness = np.array([np.inf, 2.0, np.inf, 0.5], dtype=np.float32)
+    base = {"type": "powder", "albedo": 0.7, "extinction": 1.3, "lobes": "single"}
+    bsdf = mi.load_dict(base)
+    params = mi.traverse(bsdf)
+    params["thickness"] = mi.Float(thickness)
+    params.update()
+    rng = np.random.default_rng(8)
+    wi, wo = random_hemisphere(4, rng, 0.2), random_hemisphere(4, rng, 0.2)
+    got = evaluate(bsdf, wi, wo)
+    for i, d in enumerate(thickness):
+        alone = mi.load_dict({**base, "thickness": float(d)})
+        np.testing.assert_allclose(got[i], evaluate(alone, wi[i:i + 1], wo[i:i + 1])[0],
+                                   rtol=2e-6)
+    kappa = mi.Float(1.3)
+    dr.enable_grad(kappa)
+    params["extinction"] = kappa
+    params.update()
+    si = dr.zeros(mi.SurfaceInteraction3f, 4)
+    si.wi = mi.Vector3f(*wi.T.astype(np.float32))
+    value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wo.T.astype(np.float32)))
+    dr.backward(dr.sum(value[0]))
+    grad = float(dr.grad(kappa)[0])
+    sums = []
+    for k in (1.3 + 1e-3, 1.3 - 1e-3):
+        params["extinction"] = k
+        params.update()
+        sums.append(evaluate(bsdf, wi, wo)[:, 0].sum())
+    assert np.isfinite(grad) and grad != 0.0
+    assert grad == pytest.approx((sums[0] - sums[1]) / 2e-3, rel=0.02)
+
+
+def test_energy_conserving_takes_one_value_per_parameter():
+    use_variant("llvm_ad_rgb")
+    params = mi.traverse(mi.load_dict({"type": "powder", "albedo": 0.5,
+                                       "energy": "conserving"}))
+    params["g"] = mi.Float(np.array([0.1, 0.2], dtype=np.float32))
+    with pytest.raises(RuntimeError, match=r'"g" holds 2 values \(one per lane\); with '
+                                           r'energy = "conserving" it takes one value'):
         params.update()

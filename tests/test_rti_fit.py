@@ -339,7 +339,7 @@ def test_per_pixel_grain_radius_is_recovered():
     assert np.sqrt(np.mean((pred - images[held]) ** 2)) / 0.01 < 1.7
 
 
-def _grain_regions_fit(size: int):
+def _grain_regions_fit(size: int, tolerance: float, normal_deg: float):
     """SYNTHETIC capture of issue 13: four regions of different hematite grain radius,
     amplitude_volume and extinction, a relief, 40 lights of which 8 lie 2-8 degrees from the
     camera (the coherent cone), 1 % noise (of full scale, the brightest clean value 0.9);
@@ -366,8 +366,8 @@ def _grain_regions_fit(size: int):
           + f"; normal medians {np.round(normal_medians, 2)} degrees; held-out RMS / noise "
           f"{rms / NOISE:.3f}; fit {res.fit_settings['seconds']:.0f} s")
     for key, value in rel.items():
-        assert abs(value) < 0.05, (key, value)
-    assert max(normal_medians) < 2.0, normal_medians
+        assert abs(value) < tolerance, (key, value)
+    assert max(normal_medians) < normal_deg, normal_medians
     assert rms / NOISE < 1.2
     return res
 
@@ -376,14 +376,16 @@ def test_grain_regions_recovered_with_lights_near_the_camera():
     """Issue 13's synthetic bar at 32 x 32 (the 256 x 256 run is the slow test below).
     Measured: region medians within 4 % (radius 2.4 %, A_v 3.9 %, extinction 2.3 % in the
     darkest region, < 1 % elsewhere), normal medians < 0.5 degrees, held-out RMS 1.03 x the
-    noise."""
-    _grain_regions_fit(32)
+    noise. The issue's bar: 5 % and 2 degrees."""
+    _grain_regions_fit(32, tolerance=0.05, normal_deg=1.0)
 
 
 @pytest.mark.slow
 def test_grain_regions_recovered_256():
-    """The same at the issue's 256 x 256 x 40 lights (several minutes on 2 cores)."""
-    _grain_regions_fit(256)
+    """The same at the issue's 256 x 256 x 40 lights (several minutes on 2 cores). Measured:
+    region medians within 0.6 %, normal medians 0.27-0.43 degrees, held-out RMS 1.03 x the
+    noise."""
+    _grain_regions_fit(256, tolerance=0.01, normal_deg=0.6)
 
 
 def test_near_camera_lights_and_grain_regions():

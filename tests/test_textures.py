@@ -364,3 +364,82 @@ def test_an_edit_of_the_held_agglomerate_radius_rebuilds_the_fill_table():
                                        {**extra, "agglomerate_radius": 0.35}, texel,
                                        channel_wavelengths())
         np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)
+
+
+def test_an_edit_of_the_held_agglomerate_fill_rebuilds_the_radius_table():
+    use_variant("llvm_ad_rgb")
+    radii = [0.1, 0.15, 0.2, 0.3]
+    extra = {"grains": "agglomerate", "radius": 0.01, "agglomerate_fill": 0.4}
+    bsdf = grain_instance({"agglomerate_radius": radii}, extra)
+    params = mi.traverse(bsdf)
+    params["agglomerate_fill"] = 0.8
+    params.update()
+    order = texel_order(radii)
+    for uv, texel in zip(texel_uv(), order):
+        expected = grain_albedo_direct({"agglomerate_radius": radii},
+                                       {**extra, "agglomerate_fill": 0.8}, texel,
+                                       channel_wavelengths())
+        np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)
+
+
+def test_the_held_agglomerate_property_is_exposed_as_not_differentiable():
+    use_variant("llvm_ad_rgb")
+    params = mi.traverse(mi.load_dict({"type": "powder", "grains": "agglomerate",
+                                       "radius": 0.01, "agglomerate_radius": 0.2,
+                                       "agglomerate_fill": bitmap([0.3, 0.4, 0.5, 0.6])}))
+    flags = {k: params.flags(k) for k in params.keys()}
+    assert flags["agglomerate_radius"] & mi.ParamFlags.NonDifferentiable
+    assert not flags["agglomerate_fill.data"] & mi.ParamFlags.NonDifferentiable
+
+
+def test_a_fill_texture_up_to_one_stays_in_range():
+    """Fills up to 1: the table's last node is exactly 1 (no mixing rule beyond it), and the
+    albedo at a fill of 1 equals that of the crystallite material's sphere."""
+    use_variant("llvm_ad_rgb")
+    fills = [0.33, 0.6, 0.97, 1.0]
+    extra = {"grains": "agglomerate", "radius": 0.01, "agglomerate_radius": 0.2}
+    bsdf = grain_instance({"agglomerate_fill": fills}, extra)
+    order = texel_order(fills)
+    for uv, texel in zip(texel_uv(), order):
+        expected = grain_albedo_direct({"agglomerate_fill": fills}, extra, texel,
+                                       channel_wavelengths())
+        np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)
+
+
+def test_energy_conserving_rejects_grain_textures():
+    use_variant("llvm_ad_rgb")
+    with pytest.raises(RuntimeError, match='"conserving" needs a spatially uniform "radius"'):
+        mi.load_dict({"type": "powder", "energy": "conserving",
+                      "radius": bitmap([0.02, 0.03, 0.04, 0.05])})
+
+
+def test_grain_texture_outside_the_size_parameter_range_is_an_error():
+    use_variant("llvm_ad_rgb")
+    with pytest.raises(RuntimeError, match='"radius"'):
+        grain_instance({"radius": [0.02, 0.03, 0.04, 50.0]}, {})
+
+
+def test_conserving_energy_needs_uniform_parameters():
+    use_variant("llvm_ad_rgb")
+    with pytest.raises(RuntimeError, match='"conserving" needs a spatially uniform "g"'):
+        mi.load_dict({"type": "powder", "energy": "conserving",
+                      "g": bitmap([0.1, 0.2, 0.3, 0.4])})
+
+
+def test_checkerboard_texture():
+    """Any Mitsuba texture works (checkerboard), its values range-checked too."""
+    use_variant("llvm_ad_rgb")
+    bsdf = mi.load_dict({"type": "powder", "albedo": 0.7,
+                         "amplitude_volume": {"type": "checkerboard",
+                                              "color0": 0.5, "color1": 1.5}})
+    wi, wo = directions(8)
+    a = evaluate(bsdf, wi, wo, (0.25, 0.25))
+    b = evaluate(bsdf, wi, wo, (0.75, 0.25))
+    ref = {v: evaluate(mi.load_dict({"type": "powder", "albedo": 0.7, "amplitude_volume": v}),
+                       wi, wo, (0.25, 0.25)) for v in (0.5, 1.5)}
+    assert sorted([a.sum(), b.sum()]) == pytest.approx(
+        [ref[0.5].sum(), ref[1.5].sum()], rel=1e-5)
+    assert a.sum() != pytest.approx(b.sum(), rel=1e-3)
+    with pytest.raises(RuntimeError, match='"g" is a texture with values from'):
+        mi.load_dict({"type": "powder", "g": {"type": "checkerboard", "color0": 0.2,
+                                              "color1": 1.2}})

@@ -174,7 +174,7 @@ def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterati
     # the normal equations of the current points (a rejected step reuses them; the Jacobians
     # themselves are not kept)
     jtj, jtr = _normal_equations(jac, res, free)
-    del jac
+    del jac, res
     for iterations in range(1, max_iterations + 1):  # noqa: B007
         act = np.nonzero(active)[0]
         step = _solve_damped(jtj[act], jtr[act], damping[act], free)
@@ -190,7 +190,6 @@ def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterati
             y[kept] = trial[better]
             r_new, j_new = _padded(problem.jacobian, y[kept])
             evaluations += 1
-            res[kept] = r_new
             jtj[kept], jtr[kept] = _normal_equations(j_new, r_new, free)
             cost[kept] = np.sum(r_new**2, axis=1)
         done = np.zeros(len(y), dtype=bool)

@@ -43,8 +43,9 @@ model's prediction) get ``w = 0``. It is minimised by
 chunk in each Dr.Jit launch; Jacobian columns by forward-mode AD, one pass per variable and one
 pass for the three albedo channels together). Starts: normal and albedo from Lambertian
 photometric stereo (weighted least squares per pixel, vectorised), the Lambertian albedo mapped
-to the powder's single-scattering albedo through a table of the model; other properties at
-their defaults. Per-light gains ``E_k`` shared by all pixels alternate with the per-pixel fit:
+to the powder's single-scattering albedo through a table of the model; a free grain size from
+a search over 40 sizes (x 5 extinctions when ``extinction`` is free, with ``amplitude_volume``
+in closed form when it is free: :func:`_grain_start`); other properties at their defaults. Per-light gains ``E_k`` shared by all pixels alternate with the per-pixel fit:
 closed-form least squares given the per-pixel models, normalised to mean 1 (the overall scale
 goes into the albedo and ``amplitude_volume``).
 
@@ -1049,7 +1050,8 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
                  if grain_name in free else None)
     size_rho = grain(size_grid)[0] if size_grid is not None else None
 
-    def start(gain: np.ndarray, weight: np.ndarray, search: bool = True) -> np.ndarray:
+    def start(gain: np.ndarray, weight: np.ndarray, search: bool = True
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Lambertian start of every pixel under the gains ``gain`` (on the used lights);
         ``search``: also the grain-size search (else the default size)."""
         n0, refl = lambertian_start(obs.transpose(1, 0, 2)[:, :, None, :], d,
@@ -1206,7 +1208,7 @@ SYNTHETIC_GRAIN_REGIONS: list[dict] = [
 ]
 
 #: Region sets of :func:`synthetic_maps`
-SYNTHETIC_REGION_SETS = {"albedo": SYNTHETIC_REGIONS, "grains": SYNTHETIC_GRAIN_REGIONS}
+SYNTHETIC_REGION_SETS: dict[str, list[dict]] = {"albedo": SYNTHETIC_REGIONS, "grains": SYNTHETIC_GRAIN_REGIONS}
 
 
 def dome_directions(count: int = 40, min_elevation: float = 10.0, max_elevation: float = 80.0,

@@ -11,6 +11,7 @@
 #include <nanothread/nanothread.h>
 
 #include <array>
+#include <tuple>
 
 #include "powder_lobes.h"
 #include "powder_optics.h"
@@ -116,6 +117,39 @@ inline constexpr Spec Table[Count] = {
     { "agglomerate_fill",   "-",    0.5,     "0.5",
           { 0.0, 1.0, false, true }, true },
 };
+
+
+/// Whether a parameter describes the grains (it sets the Mie / grain tables)
+inline bool is_grain_param(Id p) {
+    return p == Radius || p == Radius2 || p == Fraction2 || p == AgglomerateRadius ||
+           p == AgglomerateFill;
+}
+
+/// Smallest and largest value of a parameter over its lanes, and whether one is NaN:
+/// a parameter set through mi.traverse may hold one value per lane (batched
+/// evaluations, e.g. mitsuba_powder.rti_fit), and every lane must be checked
+template <typename T> std::tuple<double, double, bool> lane_range(const T &v) {
+    if constexpr (dr::is_jit_v<T>) {
+        if (dr::width(v) > 1) {
+            T d = dr::detach(v);
+            return { (double) dr::slice(dr::min(d)), (double) dr::slice(dr::max(d)),
+                     (bool) dr::slice(dr::any(dr::isnan(d))) };
+        }
+    }
+    double x = (double) dr::slice(v);
+    return { x, x, std::isnan(x) };
+}
+
+/// Check every lane of a parameter against its range (the project's error names the
+/// first value out of range: the NaN, the smallest or the largest)
+template <typename T> void check_lanes(Id p, const T &v) {
+    auto [lo, hi, nan] = lane_range(v);
+    const Spec &spec = Table[p];
+    if (nan)
+        check_range(spec.name, std::numeric_limits<double>::quiet_NaN(), spec.range);
+    check_range(spec.name, lo, spec.range);
+    check_range(spec.name, hi, spec.range);
+}
 
 } // namespace powder_param
 
@@ -225,26 +259,26 @@ Dry powder (:monosp:`powder`)
      much larger than the wavelength; needs Re(eta) > 1)
 
  * - radius
-   - |float|
+   - |float| or |texture|
    - Grain radius r in micrometres, without ``albedo``; the crystallite radius with
      agglomerates, where it only sets the size-parameter warning (Default: 0.017, range
      (0, inf); size parameter 2 pi r / lambda in [1e-3, 200] for spheres)
    - |exposed|, |differentiable| (not with agglomerates)
 
  * - radius2
-   - |float|
+   - |float| or |texture|
    - Radius of a second grain population in micrometres; needs ``fraction2``
      (Default: none (one population), range (0, inf))
    - |exposed|, |differentiable|
 
  * - fraction2
-   - |float|
+   - |float| or |texture|
    - Volume fraction of the second population; needs ``radius2``
      (Default: none (one population), range [0, 1])
    - |exposed|, |differentiable|
 
  * - agglomerate_radius
-   - |float|
+   - |float| or |texture|
    - Radius R_a of an agglomerate in micrometres; required with ``grains`` =
      ``agglomerate``, not allowed otherwise (Default: none (required with agglomerates),
      range (0, inf); size parameter 2 pi R_a / lambda in [1e-3, 200])
@@ -436,7 +470,10 @@ public:
         if (m_conserving)
             for (powder_param::Id p : { powder_param::AmplitudeVolume, powder_param::G,
                                         powder_param::Extinction, powder_param::TauO,
-                                        powder_param::Thickness })
+                                        powder_param::Thickness, powder_param::Radius,
+                                        powder_param::Radius2, powder_param::Fraction2,
+                                        powder_param::AgglomerateRadius,
+                                        powder_param::AgglomerateFill })
                 if (textured(p))
                     Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
                           "uniform \"%s\" (the normalisation is tabulated per wavelength and "
@@ -520,7 +557,12 @@ public:
         for (size_t i = 0; i < powder_param::Count; ++i) {
             if (!exposed((powder_param::Id) i))
                 continue;
-            uint32_t flags = (uint32_t) (powder_param::Table[i].fittable
+            // (the agglomerate property a grain texture table holds at one value is not)
+            bool held = agglomerate() && !m_albedo && grain_textured() &&
+                        (i == powder_param::AgglomerateRadius ||
+                         i == powder_param::AgglomerateFill) &&
+                        i != (size_t) table_param();
+            uint32_t flags = (uint32_t) (powder_param::Table[i].fittable && !held
                                              ? ParamFlags::Differentiable
                                              : ParamFlags::NonDifferentiable);
             if (m_textures[i]) // e.g. "g.data" for a bitmap, as Mitsuba's own textures
@@ -542,12 +584,16 @@ public:
                 continue;
             }
             const Float &v = this->*member((powder_param::Id) i);
-            check_lanes((powder_param::Id) i, v);
-            // the grain tables are built from one value: one per lane would be ignored
-            if (is_grain_param((powder_param::Id) i) && dr::width(v) > 1)
-                Throw("powder: property \"%s\" holds %zu values (one per lane); a grain "
-                      "property takes one value, or a texture for one per surface point",
-                      powder_param::Table[i].name, dr::width(v));
+            powder_param::check_lanes((powder_param::Id) i, v);
+            // the grain tables are built from one value (one per lane would be ignored),
+            // and so is the normalisation of energy = "conserving"
+            if (dr::width(v) > 1 && (powder_param::is_grain_param((powder_param::Id) i) ||
+                                     m_conserving))
+                Throw("powder: property \"%s\" holds %zu values (one per lane); %s takes "
+                      "one value, or a texture for one per surface point",
+                      powder_param::Table[i].name, dr::width(v),
+                      m_conserving && !powder_param::is_grain_param((powder_param::Id) i)
+                          ? "with energy = \"conserving\" it" : "a grain property");
         }
 
         // An infinite layer needs no thickness factor (and 0 * inf would
@@ -555,7 +601,7 @@ public:
         // With one thickness per lane, the factor is evaluated when any is finite (it
         // is 1 in the infinite lanes)
         m_finite_thickness = textured(powder_param::Thickness) ||
-                             std::isfinite(std::get<0>(lane_range(m_thickness)));
+                             std::isfinite(std::get<0>(powder_param::lane_range(m_thickness)));
 
         // Opaque first: the Mie tangents below must not bake the radius in as a literal
         // (that would compile a new kernel for every radius an optimiser tries)
@@ -618,7 +664,8 @@ public:
             UnpolarizedSpectrum x0 = 2.f * dr::detach(m_volume.c0) * dr::detach(m_volume.tau);
             m_coherent_saturated = true;
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
-                m_coherent_saturated &= std::get<0>(lane_range(x0[c])) >= 18.0; // every lane
+                m_coherent_saturated &=
+                    std::get<0>(powder_param::lane_range(x0[c])) >= 18.0; // every lane
         }
 
         // Detached means, used only to weight the sampling lobes
@@ -1223,10 +1270,13 @@ private:
     }
 
     /**
-     * Spatially varying grains (a radius, radius2 or fraction2 texture): tabulate
-     * Q_ext and Q_sca over ln r (powder::efficiency_table) for the radii the textures
-     * hold, widened by a factor 1.25 each way so that edits of the texture usually stay
-     * inside (outside, the table is rebuilt); eval interpolates per lane and mixes the
+     * Spatially varying grains (a radius, radius2, fraction2 or agglomerate_radius
+     * texture): tabulate Q_ext and Q_sca over ln r (powder::efficiency_table) for the
+     * radii the textures hold, widened by a factor 1.25 each way so that edits of the
+     * texture usually stay inside (outside, the table is rebuilt); with an
+     * agglomerate_fill texture, over the fill (widened by 0.05 each way inside (0, 1])
+     * at the float agglomerate_radius. The table is rebuilt when the agglomerate
+     * property it holds at one value changes. eval interpolates per lane and mixes the
      * populations (grain_texture_albedo). Differentiable through the interpolation.
      */
     void update_grain_texture_table() {
@@ -1256,15 +1306,14 @@ private:
         if (m_grain_table.nodes > 0 && lo >= m_grain_table_lo && hi <= m_grain_table_hi &&
             held_value == m_grain_table_held)
             return; // the current table covers the values
-        m_grain_table_held = held_value;
         if (fill) {
-            // fills in (0, 1]: widened by 0.05 each way where they can be
+            // fills in (0, 1]: widened by 0.05 each way where they can be (a single
+            // fill of 1 gets the interval [0.95, 1])
             double lo_t = std::max(lo - 0.05, 0.5 * lo), hi_t = std::min(hi + 0.05, 1.0);
-            hi_t = std::max(hi_t, lo_t + 1e-3);
-            if (hi_t > 1.0) { lo_t = std::max(lo_t - 1e-3, 0.5 * lo_t); hi_t = 1.0; }
             powder::Grains grains{ 1.0, 1.0, 0.0, false, m_grain_model,
                                    value_of(m_agglomerate_radius), 0.5, m_mixing };
-            build_grain_texture_table(grains, lo, hi, lo_t, hi_t, powder::TableAxis::Fill);
+            build_grain_texture_table(grains, lo, hi, lo_t, hi_t, powder::TableAxis::Fill,
+                                      held_value);
             return;
         }
         double lo_t = lo / 1.25, hi_t = hi * 1.25;
@@ -1280,13 +1329,16 @@ private:
         hi_t = std::max(hi_t, lo_t * 1.001);
         powder::Grains grains{ 1.0, 1.0, 0.0, false, m_grain_model,
                                1.0, value_of(m_agglomerate_fill), m_mixing };
-        build_grain_texture_table(grains, lo, hi, lo_t, hi_t, powder::TableAxis::LogRadius);
+        build_grain_texture_table(grains, lo, hi, lo_t, hi_t, powder::TableAxis::LogRadius,
+                                  held_value);
     }
 
     /// Build the grain texture table over [lo_t, hi_t] of its variable (covering the
-    /// texture values [lo, hi]) and upload its records
+    /// texture values [lo, hi]; `held`: the value of the agglomerate property the
+    /// table holds) and upload its records
     void build_grain_texture_table(const powder::Grains &grains, double lo, double hi,
-                                   double lo_t, double hi_t, powder::TableAxis axis) {
+                                   double lo_t, double hi_t, powder::TableAxis axis,
+                                   double held) {
         bool fill = axis == powder::TableAxis::Fill;
         double error = 0.0;
         m_grain_table = powder::efficiency_table(
@@ -1301,6 +1353,7 @@ private:
                 error, m_grain_table.nodes, GrainTableTolerance, GrainTableRecords);
         m_grain_table_lo = lo_t;
         m_grain_table_hi = hi_t;
+        m_grain_table_held = held;
         std::vector<ScalarFloat> rec(m_grain_table.records.begin(),
                                      m_grain_table.records.end());
         m_grain_records = dr::load<FloatStorage>(rec.data(), rec.size());
@@ -1720,10 +1773,17 @@ private:
                                      dr::squared_norm(wi - wo)),
                   // P(Theta) / (mu_i + mu_o) as one division
                   factor = (1.f - dr::square(g)) / (t * dr::sqrt(t) * mu_sum);
-            if (m_finite_thickness)
-                factor *= powder::one_minus_exp_neg(
-                    at(powder_param::Extinction, si, active) *
-                    at(powder_param::Thickness, si, active) * (dr::rcp(mu_i) + dr::rcp(mu_o)));
+            if (m_finite_thickness) {
+                // lanes of infinite thickness (one value per lane) get 1, and no 0 * inf
+                // in the gradient of the extinction
+                Float d = at(powder_param::Thickness, si, active);
+                Mask infinite = dr::isinf(d);
+                factor *= dr::select(infinite, 1.f,
+                                     powder::one_minus_exp_neg(
+                                         at(powder_param::Extinction, si, active) *
+                                         dr::select(infinite, 0.f, d) *
+                                         (dr::rcp(mu_i) + dr::rcp(mu_o))));
+            }
             UnpolarizedSpectrum L1 = k.rho * factor;
             ladder += L1;
         }
@@ -1953,43 +2013,9 @@ private:
 
     // ------------------------------------------------------ input checking
 
-    /// Whether a parameter describes the grains (it sets the Mie / grain tables)
-    static bool is_grain_param(powder_param::Id p) {
-        return p == powder_param::Radius || p == powder_param::Radius2 ||
-               p == powder_param::Fraction2 || p == powder_param::AgglomerateRadius ||
-               p == powder_param::AgglomerateFill;
-    }
-
     /// The value of a parameter that holds one value (lane 0 of a JIT array)
     template <typename T> static double value_of(const T &v) {
         return (double) dr::slice(v);
-    }
-
-    /// Smallest and largest value of a parameter over its lanes, and whether one is NaN:
-    /// a parameter set through mi.traverse may hold one value per lane (batched
-    /// evaluations, e.g. mitsuba_powder.rti_fit), and every lane must be checked
-    template <typename T> static std::tuple<double, double, bool> lane_range(const T &v) {
-        if constexpr (dr::is_jit_v<T>) {
-            if (dr::width(v) > 1) {
-                T d = dr::detach(v);
-                return { (double) dr::slice(dr::min(d)), (double) dr::slice(dr::max(d)),
-                         (bool) dr::slice(dr::any(dr::isnan(d))) };
-            }
-        }
-        double x = value_of(v);
-        return { x, x, std::isnan(x) };
-    }
-
-    /// Check every lane of a parameter against its range (the project's error names
-    /// the first value out of range: the NaN, the smallest or the largest)
-    static void check_lanes(powder_param::Id p, const Float &v) {
-        auto [lo, hi, nan] = lane_range(v);
-        const powder_param::Spec &spec = powder_param::Table[p];
-        if (nan)
-            powder_param::check_range(spec.name, std::numeric_limits<double>::quiet_NaN(),
-                                      spec.range);
-        powder_param::check_range(spec.name, lo, spec.range);
-        powder_param::check_range(spec.name, hi, spec.range);
     }
 
     /// The member holding a float parameter of the table powder_param::Table

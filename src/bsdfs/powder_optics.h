@@ -548,18 +548,21 @@ struct EfficiencyTable {
 };
 
 /// (Q_ext, Q_sca, dQ_ext/dfill, dQ_sca/dfill) of agglomerates of radius
-/// g.agglomerate_radius and fill `fill`; the derivatives by a central difference of
-/// step 1e-5 in the fill (one-sided at the ends of (0, 1])
+/// g.agglomerate_radius and fill `fill` in (0, 1]; the derivatives (only with
+/// `derivatives`) by a central difference of step 1e-5 in the fill (one-sided at 1)
 inline std::array<double, 4> fill_population(const Grains &g, double fill, double wl_nm,
-                                             std::complex<double> m) {
+                                             std::complex<double> m, bool derivatives) {
     auto at = [&](double f) {
         return population_efficiencies(g.agglomerate_radius, wl_nm,
                                        effective_index(m, f, g.mixing), "agglomerate_radius",
                                        false);
     };
+    auto a = at(fill);
+    if (!derivatives)
+        return { a[0], a[1], 0.0, 0.0 };
     const double h = 1e-5;
     double lo = std::max(fill - h, 0.5 * fill), hi = std::min(fill + h, 1.0);
-    auto a = at(fill), b = at(lo), c = at(hi);
+    auto b = at(lo), c = at(hi);
     return { a[0], a[1], (c[0] - b[0]) / (hi - lo), (c[1] - b[1]) / (hi - lo) };
 }
 
@@ -568,7 +571,7 @@ inline std::array<double, 4> fill_population(const Grains &g, double fill, doubl
 /// agglomerates), or the slab
 inline std::array<double, 4> table_point(const Grains &g, TableAxis axis, double v,
                                          double wl_nm, std::complex<double> m,
-                                         const char *name);
+                                         const char *name, bool derivatives = true);
 
 /// Efficiencies of one population of radius r (um) for the texture tables: Mie
 /// spheres (index m, or the effective index of agglomerates), or the slab
@@ -585,9 +588,9 @@ inline std::array<double, 4> table_population(const Grains &g, double r, double 
 
 inline std::array<double, 4> table_point(const Grains &g, TableAxis axis, double v,
                                          double wl_nm, std::complex<double> m,
-                                         const char *name) {
+                                         const char *name, bool derivatives) {
     if (axis == TableAxis::Fill)
-        return fill_population(g, v, wl_nm, m);
+        return fill_population(g, v, wl_nm, m, derivatives);
     auto a = table_population(g, v, wl_nm, m, name);
     return { a[0], a[1], a[2] * v, a[3] * v }; // dQ/du = r dQ/dr
 }
@@ -661,13 +664,16 @@ EfficiencyTable efficiency_table(const Grains &g, double lo, double hi,
     while (true) {
         t.du = du;
         t.nodes = std::max((size_t) 2, (size_t) std::ceil(span / t.du - 1e-9) + 1);
+        if (axis == TableAxis::Fill) // the last node exactly at hi (fills stay <= 1)
+            t.du = span / (double) (t.nodes - 1);
         fill_efficiency_table(t, g, wl_nm, index, name, parallel_for);
         // the albedo at every midpoint against theory
         std::vector<double> worst(wl_nm.size(), 0.0);
         for_each_row(wl_nm.size(), parallel_for, [&](size_t i) {
             for (size_t j = 0; j + 1 < t.nodes; ++j) {
                 double r = table_value(axis, t.u0 + ((double) j + 0.5) * t.du);
-                auto exact = table_point(g, axis, r, wl_nm[i], index[i], name);
+                auto exact = table_point(g, axis, r, wl_nm[i], index[i], name,
+                                         axis != TableAxis::Fill);
                 auto [qe, qs] = efficiency_at(t, i, r);
                 double rho = exact[1] / exact[0];
                 worst[i] = std::max(worst[i], std::abs(qs / qe - rho) / std::max(rho, 1e-12));
