@@ -15,9 +15,9 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ["bench_bsdf.py", "bench_eval_breakdown.py", "bench_python_bsdf.py", "bench_render.py", "bench_mie_update.py",
-           "bench_fit.py", "bench_memory.py", "bench_textures.py", "bench_rti_fit.py",
-           "ptfe_reference_fit.py"]
+SCRIPTS = ["bench_bsdf.py", "bench_eval_breakdown.py", "bench_python_bsdf.py", "bench_render.py",
+           "bench_mie_update.py", "bench_fit.py", "bench_memory.py", "bench_textures.py",
+           "bench_rti_fit.py", "ptfe_reference_fit.py"]
 
 
 def main() -> int:

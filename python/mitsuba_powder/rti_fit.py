@@ -45,8 +45,9 @@ pass for the three albedo channels together). Starts: normal and albedo from Lam
 photometric stereo (weighted least squares per pixel, vectorised), the Lambertian albedo mapped
 to the powder's single-scattering albedo through a table of the model; a free grain size from
 a search over 40 sizes (x 5 extinctions when ``extinction`` is free, with ``amplitude_volume``
-in closed form when it is free: :func:`_grain_start`); other properties at their defaults. Per-light gains ``E_k`` shared by all pixels alternate with the per-pixel fit:
-closed-form least squares given the per-pixel models, normalised to mean 1 (the overall scale
+in closed form when it is free: :func:`_grain_start`); other properties at their defaults.
+Per-light gains ``E_k`` shared by all pixels alternate with the per-pixel fit: closed-form
+least squares given the per-pixel models, normalised to mean 1 (the overall scale
 goes into the albedo and ``amplitude_volume``).
 
 **What a dome of lights determines.** Cramer-Rao bounds (1-sigma, from the Jacobian at the
@@ -1208,7 +1209,8 @@ SYNTHETIC_GRAIN_REGIONS: list[dict] = [
 ]
 
 #: Region sets of :func:`synthetic_maps`
-SYNTHETIC_REGION_SETS: dict[str, list[dict]] = {"albedo": SYNTHETIC_REGIONS, "grains": SYNTHETIC_GRAIN_REGIONS}
+SYNTHETIC_REGION_SETS: dict[str, list[dict]] = {"albedo": SYNTHETIC_REGIONS,
+                                                 "grains": SYNTHETIC_GRAIN_REGIONS}
 
 
 def dome_directions(count: int = 40, min_elevation: float = 10.0, max_elevation: float = 80.0,

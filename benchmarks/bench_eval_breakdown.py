@@ -1,0 +1,84 @@
+"""Where the time of powder's eval goes: each lobe alone and all together, with the per-
+wavelength tables (Fresnel tau_o) looked up or not (tau_o given) and with each energy mode,
+against `principled`, in llvm_ad_rgb and llvm_ad_spectral.
+
+Issue 11 asks for an all-lobes eval <= 1.6x `principled` (RGB) and <= 2.2x (spectral). This
+script says what stands between the spectral variant and that bound: the cost of a
+configuration whose volume constants do not depend on the wavelength (``tau_o`` given, a
+constant albedo: Dr.Jit hoists them out of the per-lane loop) is a lower bound for any
+reorganisation of the wavelength tables that keeps the values.
+
+Powder configuration: ``albedo 0.8, extinction 1, amplitude_surface 1e-3`` (bench_bsdf.py's),
+2^21 random direction pairs (random wavelengths in spectral variants), every configuration
+timed in turn within each of 9 repeats; a cost is the median of the per-repeat ratios to
+`principled`.
+
+    python benchmarks/bench_eval_breakdown.py [--quick]
+"""
+
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from _common import arg_parser, barh_figure, print_table, random_pairs, save, use_variant
+
+BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
+LOBES = {"all": "all", "single": "single", "multiple": "multiple", "coherent": "coherent",
+         "surface": "surface"}
+#: (label, lobes, extra properties)
+CONFIGS = [
+    *[(f"{name}, tau_o table, conserving", lobes, {}) for name, lobes in LOBES.items()],
+    ("all, tau_o table, paper", "all", {"energy": "paper"}),
+    *[(f"{name}, tau_o given, paper", lobes, {"tau_o": 1.5, "energy": "paper"})
+      for name, lobes in LOBES.items()],
+]
+
+
+def measure(variant: str, n: int, repeat: int) -> list[dict]:
+    """Eval time of every configuration and of principled over the same lanes."""
+    use_variant(variant)
+    si, wo = random_pairs(n, variant, seed=4)
+    ctx = mi.BSDFContext()
+    bsdfs = {label: mi.load_dict({**BASE, "lobes": lobes, **extra})
+             for label, lobes, extra in CONFIGS}
+    bsdfs["principled"] = mi.load_dict({"type": "principled"})
+    times: dict[str, list[float]] = {k: [] for k in bsdfs}
+    for bsdf in bsdfs.values():  # compile
+        dr.eval(bsdf.eval(ctx, si, wo))
+        dr.sync_thread()
+    for _ in range(repeat):
+        for label, bsdf in bsdfs.items():
+            t = time.perf_counter()
+            dr.eval(bsdf.eval(ctx, si, wo))
+            dr.sync_thread()
+            times[label].append(time.perf_counter() - t)
+    ref = np.array(times["principled"])
+    return [{"variant": variant, "configuration": label,
+             "ms": 1e3 * float(np.median(t)),
+             "cost_vs_principled": float(np.median(np.array(t) / ref))}
+            for label, t in times.items()]
+
+
+def main() -> None:
+    ap = arg_parser(__doc__)
+    args = ap.parse_args()
+    n, repeat = (1 << 12, 2) if args.quick else (1 << 21, 9)
+    rows = []
+    for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+        rows += measure(variant, n, repeat)
+    print_table(rows, [("variant", "variant", "s"), ("configuration", "configuration", "s"),
+                       ("ms", "eval ms", ".2f"),
+                       ("cost_vs_principled", "cost / principled", ".2f")])
+    save(args.out, "eval_breakdown", rows, args.quick, pairs=n, repeats=repeat)
+    spectral = [r for r in rows if r["variant"] == "llvm_ad_spectral"]
+    barh_figure(args.out / "eval_breakdown.png", [r["configuration"] for r in spectral],
+                [r["cost_vs_principled"] for r in spectral], "tab:orange",
+                "llvm_ad_spectral eval cost / principled")
+
+
+if __name__ == "__main__":
+    main()
