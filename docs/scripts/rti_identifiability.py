@@ -16,14 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "python"))
-
-from mitsuba_powder import rti_fit as rf  # noqa: E402
+from mitsuba_powder import rti_fit as rf
 
 FREE = ("radius", "amplitude_volume", "extinction")
 HELD = ("g", "amplitude_surface", "correlation_length")
