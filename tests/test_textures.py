@@ -350,34 +350,22 @@ def test_the_held_agglomerate_property_is_not_differentiable(textured, held):
         params.update()
 
 
-def test_an_edit_of_the_held_agglomerate_radius_rebuilds_the_fill_table():
+@pytest.mark.parametrize("textured,values,held,start,edited", [
+    ("agglomerate_fill", [0.2, 0.4, 0.6, 0.8], "agglomerate_radius", 0.2, 0.35),
+    ("agglomerate_radius", [0.1, 0.15, 0.2, 0.3], "agglomerate_fill", 0.4, 0.8),
+])
+def test_an_edit_of_the_held_agglomerate_property_rebuilds_the_table(textured, values, held,
+                                                                      start, edited):
+    """The grain table holds the other agglomerate property at one value: editing it through
+    mi.traverse rebuilds the table (the albedo then equals direct theory at the new value)."""
     use_variant("llvm_ad_rgb")
-    fills = [0.2, 0.4, 0.6, 0.8]
-    extra = {"grains": "agglomerate", "radius": 0.01, "agglomerate_radius": 0.2}
-    bsdf = grain_instance({"agglomerate_fill": fills}, extra)
+    extra = {"grains": "agglomerate", "radius": 0.01, held: start}
+    bsdf = grain_instance({textured: values}, extra)
     params = mi.traverse(bsdf)
-    params["agglomerate_radius"] = 0.35
+    params[held] = edited
     params.update()
-    order = texel_order(fills)
-    for uv, texel in zip(texel_uv(), order):
-        expected = grain_albedo_direct({"agglomerate_fill": fills},
-                                       {**extra, "agglomerate_radius": 0.35}, texel,
-                                       channel_wavelengths())
-        np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)
-
-
-def test_an_edit_of_the_held_agglomerate_fill_rebuilds_the_radius_table():
-    use_variant("llvm_ad_rgb")
-    radii = [0.1, 0.15, 0.2, 0.3]
-    extra = {"grains": "agglomerate", "radius": 0.01, "agglomerate_fill": 0.4}
-    bsdf = grain_instance({"agglomerate_radius": radii}, extra)
-    params = mi.traverse(bsdf)
-    params["agglomerate_fill"] = 0.8
-    params.update()
-    order = texel_order(radii)
-    for uv, texel in zip(texel_uv(), order):
-        expected = grain_albedo_direct({"agglomerate_radius": radii},
-                                       {**extra, "agglomerate_fill": 0.8}, texel,
+    for uv, texel in zip(texel_uv(), texel_order(values)):
+        expected = grain_albedo_direct({textured: values}, {**extra, held: edited}, texel,
                                        channel_wavelengths())
         np.testing.assert_allclose(attribute_at(bsdf, uv), expected, rtol=1e-3)
 
