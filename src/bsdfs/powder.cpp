@@ -1448,10 +1448,12 @@ private:
     /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), MODEL.md Eq. 10;
     /// precomputed in RGB and mono variants, where lambda is fixed, unless the
     /// extinction is a texture
-    UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &lam,
+    /// (inv_lam: 1 / lambda per channel, shared with the surface lobe: one division per
+    /// channel instead of two)
+    UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &inv_lam,
                                       const SurfaceInteraction3f &si, Mask active) const {
         if (is_spectral_v<Spectrum> || textured(powder_param::Extinction))
-            return dr::TwoPi<ScalarFloat> / (lam * at(powder_param::Extinction, si, active));
+            return inv_lam * (dr::TwoPi<ScalarFloat> / at(powder_param::Extinction, si, active));
         return m_k0_kappa;
     }
 
@@ -1785,7 +1787,7 @@ private:
                     si.wavelengths[c] = group_wavelength(group, c);
             VolumeConstants k = volume_constants(si, Mask(true));
             auto [ladder, coherent] = volume_terms(
-                lobes, si, wi, wo, k, k0_over_kappa(wavelengths_um(si), si, true), true);
+                lobes, si, wi, wo, k, k0_over_kappa(dr::rcp(wavelengths_um(si)), si, true), true);
             UnpolarizedSpectrum norm;
             for (uint32_t c = 0; c < C; ++c)
                 norm[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
@@ -1812,7 +1814,7 @@ private:
                     si.wi = wi;
                     VolumeConstants k = volume_constants(si, Mask(true));
                     auto [ladder, coherent] = volume_terms(
-                        lobes, si, wi, wo, k, k0_over_kappa(wavelengths_um(si), si, true),
+                        lobes, si, wi, wo, k, k0_over_kappa(dr::rcp(wavelengths_um(si)), si, true),
                         true);
                     for (uint32_t c = 0; c < C; ++c) {
                         rl[b * C + c] += (double) ladder[c] * weight;
@@ -2004,12 +2006,13 @@ private:
                  wo = dr::select(active, wo_, Vector3f(0.f, 0.f, 1.f));
         Float mu_i = Frame3f::cos_theta(wi), mu_sum = mu_i + Frame3f::cos_theta(wo);
 
-        UnpolarizedSpectrum result(0.f);
+        UnpolarizedSpectrum result(0.f),
+            inv_lam = dr::rcp(lam); // 1 / lambda (1/um), for k0 / kappa and S
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
             VolumeConstants k = volume_constants(si, active);
             auto [ladder, coherent] = volume_terms(lobes, si, wi, wo, k,
-                                                   k0_over_kappa(lam, si, active), active);
+                                                   k0_over_kappa(inv_lam, si, active), active);
             UnpolarizedSpectrum volume = ladder + coherent; // L1 + L2 + C
             if (m_conserving) // energy = "conserving": times N(mu_i), per channel
                 volume *= energy_norm(mu_i, lam, active);
@@ -2025,7 +2028,7 @@ private:
                    A_s' (4 pi^2 / lam^4) (mu_i + mu_o)^2 pi l_c^2 exp(-pi^2 l_c^2 f_s^2),
                    f_s = |wo_xy + wi_xy| / lam */
                 Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y();
-                UnpolarizedSpectrum inv_lam2 = dr::rcp(dr::square(lam)),
+                UnpolarizedSpectrum inv_lam2 = dr::square(inv_lam),
                     fs2 = (sx * sx + sy * sy) * inv_lam2;
                 Float lc2 = dr::square(at(powder_param::CorrelationLength, si, active));
                 S = (as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
