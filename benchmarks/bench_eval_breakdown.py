@@ -10,9 +10,9 @@ from a 1 nm table, one packet gather per channel.
 
 Powder configuration: ``albedo 0.8, extinction 1, amplitude_surface 1e-3`` (bench_bsdf.py's;
 ``energy`` "paper", the default, unless a row says "conserving"; the Mie row has ``radius 0.1``
-instead of the albedo), 2^21 random direction pairs (random wavelengths in spectral variants),
-every configuration timed in turn within each of 9 repeats; a cost is the median of the
-per-repeat ratios to `principled`.
+instead of the albedo, and in RGB a row gives its three values as a constant albedo), 2^21
+random direction pairs (random wavelengths in spectral variants), every configuration timed in
+turn within each of 9 repeats; a cost is the median of the per-repeat ratios to `principled`.
 
     python benchmarks/bench_eval_breakdown.py [--quick]
 """
@@ -51,6 +51,12 @@ def measure(variant: str, n: int, repeat: int) -> list[dict]:
     si, wo = random_pairs(n, variant, seed=4)
     ctx = mi.BSDFContext()
     bsdfs = {label: mi.load_dict(props(lobes, extra)) for label, lobes, extra in CONFIGS}
+    if variant.endswith("rgb"):
+        # the Mie albedo's three values as a constant albedo: what the lookup itself costs
+        mie = bsdfs["all, Mie albedo, tau_o table"]
+        rho = np.array(mie.eval_attribute("albedo", dr.zeros(mi.SurfaceInteraction3f, 1)))
+        bsdfs["all, the Mie albedo's values as a constant"] = mi.load_dict(props("all", {
+            "albedo": {"type": "rgb", "value": [float(v) for v in rho.ravel()]}}))
     bsdfs["principled"] = mi.load_dict({"type": "principled"})
     times: dict[str, list[float]] = {k: [] for k in bsdfs}
     for bsdf in bsdfs.values():  # compile
