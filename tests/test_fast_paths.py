@@ -1,8 +1,8 @@
 """The per-parameter fast paths of eval give the same values as the general path: RGB and mono
 variants precompute the volume constants for a spatially uniform albedo and skip the
 exponential of the coherent term when 2 c0 tau_o >= 18 in every channel (its series when
-2 c0 tau_o >= 0.03); spectral variants precompute them for a one-number albedo and a given
-tau_o, and tabulate them on the 1 nm grid otherwise (s(c0) interpolated instead of
+2 c0 tau_o >= 0.03); spectral variants precompute them for a one-number albedo and a
+one-number tau_o (given, or from a constant index), and tabulate them on the 1 nm grid otherwise (s(c0) interpolated instead of
 recomputed); a spatially varying texture (here a constant bitmap) takes the general path."""
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ SPECTRAL_CASES = {
     "mie_tau_given": ({"radius": 0.1, "tau_o": 1.5}, "table of rho, c0^2, s, tau_o"),
     "albedo_fresnel": ({"albedo": 0.8}, "table of s, tau_o"),
     "albedo_tau_given": ({"albedo": 0.8, "tau_o": 1.5}, "uniform"),
+    "albedo_constant_index": ({"albedo": 0.8, "eta": 1.35, "k": 0.0}, "uniform"),
     "near_white_series": ({"albedo": 0.9995, "tau_o": 0.01}, "uniform, series of C"),
     "near_white_fresnel": ({"albedo": 0.99995}, "table of s, tau_o, series of C"),
 }

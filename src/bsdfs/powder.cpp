@@ -643,13 +643,14 @@ public:
 
         // The volume constants are the same for every interaction when the albedo
         // and tau_o are: precompute them (opaque, so no recompilation per value)
-        // (spectral: when the albedo is one number for every wavelength and tau_o is
-        // given)
+        // (spectral: when the albedo is one number for every wavelength and so is tau_o:
+        // given, or from a constant index)
         m_uniform_volume = (!m_albedo || !m_albedo->is_spatially_varying()) &&
                            !textured(powder_param::G) && !textured(powder_param::TauO) &&
                            !grain_textured();
         if constexpr (is_spectral_v<Spectrum>)
-            m_uniform_volume &= m_tau_given && uniform_spectrum_albedo();
+            m_uniform_volume &= uniform_spectrum_albedo() &&
+                                (m_tau_given || min_of(m_tau_table) == max_of(m_tau_table));
         if (m_uniform_volume) {
             SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
             m_volume = volume_constants(albedo(si, true), tau_o(si, true), m_g);
@@ -1598,6 +1599,18 @@ private:
             double m = powder_param::Inf;
             for (size_t i = 0; i < t.size(); ++i)
                 m = std::min(m, (double) t[i]);
+            return m;
+        }
+    }
+
+    /// Largest entry of a table (detached), as a double
+    static double max_of(const FloatStorage &t) {
+        if constexpr (dr::is_jit_v<Float>)
+            return (double) dr::slice(dr::max(dr::detach(t)));
+        else {
+            double m = -powder_param::Inf;
+            for (size_t i = 0; i < t.size(); ++i)
+                m = std::max(m, (double) t[i]);
             return m;
         }
     }
