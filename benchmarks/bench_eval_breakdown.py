@@ -9,7 +9,7 @@ once per parameter change; with the Fresnel ``tau_o`` (hematite, the default) th
 from a 1 nm table, one packet gather per channel.
 
 Powder configuration: ``albedo 0.8, extinction 1, amplitude_surface 1e-3`` (bench_bsdf.py's;
-``energy`` "paper", the default, unless a row says "conserving"; the Mie row has ``radius 0.1``
+``energy`` "paper", the default, unless a row says "conserving"; the Mie row has ``radius 0.05``
 instead of the albedo, and in RGB a row gives its three values as a constant albedo), 2^21
 random direction pairs (random wavelengths in spectral variants), every configuration timed in
 turn within each of 9 repeats; a cost is the median of the per-repeat ratios to `principled`.
@@ -34,7 +34,7 @@ LOBES = {"all": "all", "single": "single", "multiple": "multiple", "coherent": "
 CONFIGS = [
     *[(f"{name}, tau_o table", lobes, {}) for name, lobes in LOBES.items()],
     ("all, tau_o table, conserving", "all", {"energy": "conserving"}),
-    ("all, Mie albedo, tau_o table", "all", {"albedo": None, "radius": 0.1}),
+    ("all, Mie albedo, tau_o table", "all", {"albedo": None, "radius": 0.05}),
     *[(f"{name}, tau_o given", lobes, {"tau_o": 1.5}) for name, lobes in LOBES.items()],
 ]
 
