@@ -82,16 +82,21 @@ def test_white_furnace_conserving(kappa_over_k0, ladder_reflectance):
     assert worst > 0.5
 
 
-@pytest.mark.parametrize("kappa_over_k0,tau", [(1.0, 3.0), (10.0, 2.0 / 3.0), (0.01, 3.0)])
+@pytest.mark.parametrize("kappa_over_k0,tau", [(1.0, 3.0), (10.0, 2.0 / 3.0), (0.01, 3.0),
+                                               (1.0, None)])
 def test_white_furnace_conserving_spectral(kappa_over_k0, tau):
     """Spectral variant (N per wavelength of a 10 nm grid, interpolated): the white powder
     reflects min(R_L, 1) in every sRGB channel, in units of the film's response to a unit
-    spectrum (R_L, of a uniform albedo and a given tau_o, does not depend on wavelength)."""
+    spectrum (R_L, of a uniform albedo and a given tau_o, does not depend on wavelength).
+    tau None: hematite's Fresnel tau_o (8.4-18.8, the 1 nm table of the volume constants),
+    where R_L > 1 at every wavelength."""
     use_variant("llvm_ad_spectral")
     # kappa/k0 at 830 nm, the longest wavelength (larger at shorter ones)
     props = {**white_powder(kappa_over_k0, 0.3, tau, "conserving"),
              "extinction": kappa_over_k0 * 2.0 * np.pi / 0.83}
     del props["wavelength"]
+    if tau is None:
+        del props["tau_o"]
     bsdf = mi.load_dict(props)
     from mitsuba_powder.furnace import hemispherical_reflectance
 
@@ -146,6 +151,7 @@ def test_modes_agree_in_the_narrow_cone_regime(variant):
 
 @pytest.mark.parametrize("variants", [("scalar_rgb", "llvm_ad_rgb"),
                                       ("scalar_spectral", "llvm_ad_spectral"),
+                                      ("scalar_spectral", "llvm_ad_spectral", "mie"),
                                       ("scalar_spectral_polarized", "llvm_ad_spectral_polarized"),
                                       ("llvm_ad_mono", "llvm_ad_mono_polarized")])
 def test_scalar_and_llvm_tables_agree(variants):
@@ -153,6 +159,9 @@ def test_scalar_and_llvm_tables_agree(variants):
     polarized variants those of the unpolarized ones); N lowers the value here."""
     props = {"type": "powder", "albedo": 0.95, "g": 0.2, "tau_o": 2.0, "extinction": 6.0,
              "rgb_wavelengths": "700, 600, 500"}
+    if variants[-1] == "mie":  # the spectral 1 nm table of the volume constants
+        variants = variants[:-1]
+        props = {"type": "powder", "radius": 0.1, "g": 0.2, "extinction": 6.0}
     rng = np.random.default_rng(4)
     wi = random_hemisphere(300, rng, 0.02)
     wo = random_hemisphere(300, rng, 0.02)
