@@ -10,7 +10,8 @@ from a 1 nm table, one packet gather per channel.
 
 Powder configuration: ``albedo 0.8, extinction 1, amplitude_surface 1e-3`` (bench_bsdf.py's;
 ``energy`` "paper", the default, unless a row says "conserving"; the Mie row has ``radius 0.05``
-instead of the albedo, and in RGB a row gives its three values as a constant albedo), 2^21
+instead of the albedo, the constant-index row ``eta 1.35, k 0`` (PTFE-like: a Fresnel tau_o that
+is one number), and in RGB a row gives the Mie albedo's values as a constant albedo), 2^21
 random direction pairs (random wavelengths in spectral variants), every configuration timed in
 turn within each of 9 repeats; a cost is the median of the per-repeat ratios to `principled`.
 
@@ -35,6 +36,7 @@ CONFIGS = [
     *[(f"{name}, tau_o table", lobes, {}) for name, lobes in LOBES.items()],
     ("all, tau_o table, conserving", "all", {"energy": "conserving"}),
     ("all, Mie albedo, tau_o table", "all", {"albedo": None, "radius": 0.05}),
+    ("multiple, constant index", "multiple", {"eta": 1.35, "k": 0.0}),
     *[(f"{name}, tau_o given", lobes, {"tau_o": 1.5}) for name, lobes in LOBES.items()],
 ]
 
