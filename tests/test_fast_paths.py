@@ -233,5 +233,21 @@ def test_energy_conserving_takes_one_value_per_parameter():
                                        "energy": "conserving"}))
     params["g"] = mi.Float(np.array([0.1, 0.2], dtype=np.float32))
     with pytest.raises(RuntimeError, match=r'"g" holds 2 values \(one per lane\); with '
-                                           r'energy = "conserving" it takes one value'):
+                                           r'energy = "conserving" it takes one value .*'
+                                           r'use energy = "paper" for one value per lane'):
         params.update()
+    # the surface lobe is not in the normalisation: one value per lane is accepted
+    base = {"type": "powder", "albedo": 0.5, "energy": "conserving"}
+    bsdf = mi.load_dict(base)
+    params = mi.traverse(bsdf)
+    values = np.array([1e-3, 5e-2], dtype=np.float32)
+    params["amplitude_surface"] = mi.Float(values)
+    params.update()
+    rng = np.random.default_rng(9)
+    wi = random_hemisphere(2, rng, 0.3)
+    wo = wi * np.array([-1.0, -1.0, 1.0])  # the mirror direction: the surface lobe's peak
+    got = evaluate(bsdf, wi, wo)
+    for i, a in enumerate(values):
+        want = evaluate(mi.load_dict({**base, "amplitude_surface": float(a)}), wi[i:i + 1],
+                        wo[i:i + 1])
+        np.testing.assert_allclose(got[i], want[0], rtol=2e-6)

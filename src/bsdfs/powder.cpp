@@ -125,6 +125,13 @@ inline bool is_grain_param(Id p) {
            p == AgglomerateFill;
 }
 
+/// The parameters the normalisation of energy = "conserving" is tabulated from (one value
+/// each: no texture, no value per lane)
+inline bool is_normalisation_param(Id p) {
+    return p == AmplitudeVolume || p == G || p == Extinction || p == TauO || p == Thickness ||
+           is_grain_param(p);
+}
+
 /// Smallest and largest value of a parameter over its lanes, and whether one is NaN:
 /// a parameter set through mi.traverse may hold one value per lane (batched
 /// evaluations, e.g. mitsuba_powder.rti_fit), and every lane must be checked
@@ -468,13 +475,9 @@ public:
         m_conserving = powder_param::read_choice<2>(props, "energy",
                                                     { "paper", "conserving" }) == 1;
         if (m_conserving)
-            for (powder_param::Id p : { powder_param::AmplitudeVolume, powder_param::G,
-                                        powder_param::Extinction, powder_param::TauO,
-                                        powder_param::Thickness, powder_param::Radius,
-                                        powder_param::Radius2, powder_param::Fraction2,
-                                        powder_param::AgglomerateRadius,
-                                        powder_param::AgglomerateFill })
-                if (textured(p))
+            for (size_t i = 0; i < powder_param::Count; ++i)
+                if (powder_param::Id p = (powder_param::Id) i;
+                    powder_param::is_normalisation_param(p) && textured(p))
                     Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
                           "uniform \"%s\" (the normalisation is tabulated per wavelength and "
                           "incidence), but it is a texture; use energy = \"paper\" or a "
@@ -589,13 +592,17 @@ public:
             powder_param::check_lanes((powder_param::Id) i, v);
             // the grain tables are built from one value (one per lane would be ignored),
             // and so is the normalisation of energy = "conserving"
-            if (dr::width(v) > 1 && (powder_param::is_grain_param((powder_param::Id) i) ||
-                                     m_conserving))
-                Throw("powder: property \"%s\" holds %zu values (one per lane); %s takes "
-                      "one value, or a texture for one per surface point",
-                      powder_param::Table[i].name, dr::width(v),
-                      m_conserving && !powder_param::is_grain_param((powder_param::Id) i)
-                          ? "with energy = \"conserving\" it" : "a grain property");
+            bool normalised =
+                m_conserving && powder_param::is_normalisation_param((powder_param::Id) i);
+            if (dr::width(v) > 1 && normalised)
+                Throw("powder: property \"%s\" holds %zu values (one per lane); with energy "
+                      "= \"conserving\" it takes one value (the normalisation is tabulated "
+                      "for one); use energy = \"paper\" for one value per lane",
+                      powder_param::Table[i].name, dr::width(v));
+            if (dr::width(v) > 1 && powder_param::is_grain_param((powder_param::Id) i))
+                Throw("powder: property \"%s\" holds %zu values (one per lane); a grain "
+                      "property takes one value, or a texture for one per surface point",
+                      powder_param::Table[i].name, dr::width(v));
         }
 
         // An infinite layer needs no thickness factor (and 0 * inf would
