@@ -296,6 +296,15 @@ def test_synthetic_capture_is_labelled_and_noisy():
                                  | {"radius": 5.0}, c["directions"]),
      r"radius\[0, 0\] = 5.0 is out of range"),
     (lambda c: rf.synthetic_capture(8, 8, 10, noise=-0.1), "noise = -0.1 is out of range"),
+    (lambda c: rf.fit_maps(c["images"], c["directions"], fixed={"energy": "conserving"}),
+     r"energy = 'conserving': per-pixel maps need energy = 'paper'"),
+    (lambda c: rf.synthetic_capture(8, 8, lights=10.5),
+     r"lights = 10.5 is not a whole number; valid range is \[1, inf\]"),
+    (lambda c: rf.synthetic_capture(8, 8, lights=10, near_camera=2.5),
+     r"near_camera = 2.5 is not a whole number; valid range is \[0, 10\]"),
+    (lambda c: rf.synthetic_capture(8, 8, lights=0), r"lights = 0 is out of range"),
+    (lambda c: rf.fit_maps(c["images"], c["directions"], rounds=float("inf")),
+     "rounds = inf is not a whole number"),
 ])
 def test_bad_input_is_named(call, message):
     cap = rf.synthetic_capture(8, 8, 10, noise=0.0)

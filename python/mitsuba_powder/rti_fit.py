@@ -279,6 +279,15 @@ def _check_range(name: str, value: float, lower: float, upper: float,
     return v
 
 
+def _check_count(name: str, value, lower: int, upper: float = math.inf) -> int:
+    """A whole number in [lower, upper] (2.5 is an error, not 2)."""
+    v = _check_range(name, value, lower, upper)
+    if not math.isfinite(v) or v != math.floor(v):
+        raise ValueError(f"{name} = {value!r} is not a whole number; valid range is "
+                         f"[{lower:g}, {upper:g}]")
+    return int(v)
+
+
 def _check_normals(normals: np.ndarray, shape: tuple[int, int], name: str = "normal"
                    ) -> np.ndarray:
     """(H, W, 3) unit normals facing the camera -> float64 normalised."""
@@ -359,6 +368,11 @@ class _Evaluator:
         if "rgb" not in variant:
             raise ValueError(f"variant = {variant!r}: RTI maps need an RGB variant (e.g. "
                              "llvm_ad_rgb or cuda_ad_rgb)")
+        if settings.get("energy", "paper") != "paper":
+            raise ValueError(f"energy = {settings['energy']!r}: per-pixel maps need energy = "
+                             "'paper' (the only valid value here: 'conserving' tabulates its "
+                             "normalisation for one value of each parameter, not one per "
+                             "pixel)")
         self.variant = variant
         self.varying = list(varying)
         props = {k: v for k, v in settings.items()
@@ -514,7 +528,7 @@ def render_capture(maps: Mapping, directions: np.ndarray, gains: np.ndarray | No
     shape = tuple(np.shape(maps["normal"])[:2])
     normals, albedo, values, settings = _split_maps(maps, shape)
     g = _check_gains(gains, len(d))
-    max_lanes = int(_check_range("max_lanes", max_lanes, 1, math.inf))
+    max_lanes = _check_count("max_lanes", max_lanes, 1)
     ev = _Evaluator(list(values), settings, variant)
     slopes = _slopes(normals).reshape(-1, 2)
     alb = albedo.reshape(-1, 3)
@@ -965,12 +979,12 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
                          "most 10 (normal 2 + albedo 3 + 5)")
     if gains not in GAIN_MODES:
         raise ValueError(f"gains = {gains!r} is not a gain mode; choose one of {GAIN_MODES}")
-    max_iterations = int(_check_range("max_iterations", max_iterations, 1, math.inf))
-    rounds = int(_check_range("rounds", rounds, 1, math.inf))
+    max_iterations = _check_count("max_iterations", max_iterations, 1)
+    rounds = _check_count("rounds", rounds, 1)
     saturation = _check_range("saturation", saturation, 0.0, math.inf, open_lower=True)
     shadow_ratio = _check_range("shadow_ratio", shadow_ratio, 0.0, 1.0, open_lower=True)
     shadow_floor = _check_range("shadow_floor", shadow_floor, 0.0, math.inf)
-    max_lanes = int(_check_range("max_lanes", max_lanes, 1, math.inf))
+    max_lanes = _check_count("max_lanes", max_lanes, 1)
     g = _check_gains(initial_gains, k)
     scale = float(np.mean(g))  # the overall scale: a calibration, not fitted
     if mask is None:
@@ -1217,7 +1231,7 @@ def dome_directions(count: int = 40, min_elevation: float = 10.0, max_elevation:
                     seed: int = 0) -> np.ndarray:
     """``count`` light directions on a dome: a Fibonacci spiral in elevation between
     ``min_elevation`` and ``max_elevation`` (degrees, uniform in sin(elevation)), (count, 3)."""
-    count = int(_check_range("count", count, 1, math.inf))
+    count = _check_count("count", count, 1)
     lo = _check_range("min_elevation", min_elevation, 0.0, 90.0)
     hi = _check_range("max_elevation", max_elevation, lo, 90.0)
     i = np.arange(count) + 0.5
@@ -1239,8 +1253,8 @@ def synthetic_maps(height: int = 64, width: int = 64, relief: float = 0.25,
     Returns:
         maps for :func:`render_capture` and the (H, W) region index (0-3).
     """
-    h = int(_check_range("height", height, 2, math.inf))
-    w = int(_check_range("width", width, 2, math.inf))
+    h = _check_count("height", height, 2)
+    w = _check_count("width", width, 2)
     relief = _check_range("relief", relief, 0.0, 2.0)
     if regions not in SYNTHETIC_REGION_SETS:
         raise ValueError(f"regions = {regions!r} is not a region set; choose one of "
@@ -1303,8 +1317,8 @@ def synthetic_capture(height: int = 64, width: int = 64, lights: int = 40,
     noise = _check_range("noise", noise, 0.0, math.inf)
     if exposure is not None:
         exposure = _check_range("exposure", exposure, 0.0, math.inf, open_lower=True)
-    lights = int(_check_range("lights", lights, 1, math.inf))
-    near = int(_check_range("near_camera", near_camera, 0, lights))
+    lights = _check_count("lights", lights, 1)
+    near = _check_count("near_camera", near_camera, 0, lights)
     d = np.concatenate(([dome_directions(lights - near)] if lights > near else []) +
                        ([dome_directions(near, 82.0, 88.0, seed=1)] if near else []))
     rel = _check_gains(gains, len(d))
