@@ -2,9 +2,10 @@
 variants precompute the volume constants for a spatially uniform albedo and skip the
 exponential of the coherent term when 2 c0 tau_o >= 18 in every channel (its series when
 2 c0 tau_o >= 0.03); spectral variants precompute them for a one-number albedo and a
-one-number tau_o (given, or from a constant index), and tabulate them on the 1 nm grid
-otherwise (s(c0) interpolated instead of recomputed); a spatially varying texture (here a
-constant bitmap) takes the general path."""
+one-number tau_o (given, or from a constant index) or for a one-number albedo when the layer
+is optically thick at every wavelength (2 c0 tau_o >= 18 ln 2: s(c) = 1 / (2 c), within
+2^-18), and tabulate them on the 1 nm grid otherwise (s(c0) interpolated instead of
+recomputed); a spatially varying texture (here a constant bitmap) takes the general path."""
 
 from __future__ import annotations
 
@@ -43,14 +44,18 @@ def test_uniform_albedo_matches_general_path(variant, extra):
 TABLE8 = "1 nm table of rho, s(c0), tau_o"
 TABLE4 = "1 nm table of s(c0), tau_o"
 UNIFORM = "once per parameter change"
+THICK = "once per parameter change (optically thick)"
 #: spectral cases: (properties, how the fast instance gets its volume constants); comments:
-#: the branch of C that 2 c0 tau_o selects (hematite's Fresnel tau_o is 8.4-18.8)
+#: the branch of C that x0 = 2 c0 tau_o selects (hematite's Fresnel tau_o is 8.38-18.8;
+#: g = 0.3; optically thick from x0 = 18 ln 2 = 12.48 on)
 SPECTRAL_CASES = {
     "mie_fresnel": ({"radius": 0.1}, TABLE8),
     "mie_tau_given": ({"radius": 0.1, "tau_o": 1.5}, TABLE8),
     "mie_two_populations": ({"radius": 0.1, "radius2": 0.3, "fraction2": 0.4}, TABLE8),
-    "albedo_fresnel": ({"albedo": 0.8}, TABLE4),  # closed form
-    "albedo_fresnel_saturated": ({"albedo": 0.3}, TABLE4),  # 2 c0 tau_o >= 23
+    "albedo_fresnel": ({"albedo": 0.8}, TABLE4),  # closed form, x0 = 11.3
+    "albedo_fresnel_below_thick": ({"albedo": 0.765}, TABLE4),  # x0 = 12.35
+    "albedo_fresnel_thick_edge": ({"albedo": 0.756}, THICK),  # x0 = 12.6, exp(-x0) 3.4e-6
+    "albedo_fresnel_thick": ({"albedo": 0.3}, THICK),  # x0 >= 23: rounds to the same
     "near_white_fresnel": ({"albedo": 0.99995}, TABLE4),  # closed form, x0 = 0.16
     "white_fresnel_series": ({"albedo": 0.999999}, TABLE4),  # series, x0 = 0.028
     "albedo_tau_given": ({"albedo": 0.8, "tau_o": 1.5}, UNIFORM),
@@ -81,7 +86,8 @@ def test_spectral_volume_constants_match_general_path(variant, lobes, case):
     parameter change or the 1 nm table (the path is asserted). In the table, s(c0) is
     interpolated in wavelength instead of recomputed: L2 ("multiple") differs by at most
     2.3e-5 for a Mie albedo of 100 nm grains; rho, c0 and tau_o, and so L1 and C, are the
-    same."""
+    same. Optically thick: L2 and C differ by at most exp(-x0) <= 2^-18 (3.8e-6) plus
+    rounding."""
     use_variant(variant)
     extra, path = SPECTRAL_CASES[case]
     props = {"type": "powder", "extinction": 0.7, "amplitude_surface": 1e-3,
@@ -95,7 +101,8 @@ def test_spectral_volume_constants_match_general_path(variant, lobes, case):
     assert np.all(np.isfinite(a)) and np.all(a > 0)
     # a mix with 300 nm grains: 7.7e-5 (there the albedo's own 1 nm interpolation is 1e-3
     # from Mie at the exact wavelength, s(c0) 4.9e-4, the same both ways)
-    rtol = 1e-4 if case == "mie_two_populations" else 3e-5 if path == TABLE8 else 5e-6
+    rtol = (1e-4 if case == "mie_two_populations" else 3e-5 if path == TABLE8
+            else 6e-6 if path == THICK else 5e-6)
     np.testing.assert_allclose(a, b, rtol=rtol, atol=0)
 
 
@@ -125,6 +132,25 @@ def test_spectral_paths_follow_parameter_edits():
     np.testing.assert_allclose(evaluate(bsdf, wi, wo, lam),
                                evaluate(mi.load_dict({**base, "g": 0.8}), wi, wo, lam),
                                rtol=1e-6)
+
+
+def test_optically_thick_path_follows_albedo_edits():
+    """Editing the albedo across the thick limit switches between the constants computed once
+    and the 1 nm table, each time equal to a new instance with that albedo (hematite's Fresnel
+    tau_o, g = 0: thick up to albedo 0.815)."""
+    use_variant("llvm_ad_spectral")
+    base = {"type": "powder", "extinction": 0.7, "amplitude_surface": 1e-3}
+    bsdf = mi.load_dict({**base, "albedo": 0.8})
+    params = mi.traverse(bsdf)
+    key = next(k for k in params.keys() if k.startswith("albedo"))
+    wi, wo, lam = spectral_pairs(2000, 9)
+    for albedo, path in [(0.8, THICK), (0.9, TABLE4), (0.5, THICK)]:
+        params[key] = albedo
+        params.update()
+        assert volume_path(bsdf) == path, albedo
+        np.testing.assert_allclose(
+            evaluate(bsdf, wi, wo, lam),
+            evaluate(mi.load_dict({**base, "albedo": albedo}), wi, wo, lam), rtol=1e-6)
 
 
 def test_the_saturated_coherent_path_is_exercised():

@@ -657,11 +657,22 @@ public:
         m_uniform_volume = (!m_albedo || !m_albedo->is_spatially_varying()) &&
                            !textured(powder_param::G) && !textured(powder_param::TauO) &&
                            !grain_textured();
-        if constexpr (is_spectral_v<Spectrum>)
-            m_uniform_volume &= uniform_spectrum_albedo() && (m_tau_given || m_tau_table_constant);
+        m_thick_volume = false;
+        if constexpr (is_spectral_v<Spectrum>) {
+            m_uniform_volume &= uniform_spectrum_albedo();
+            if (m_uniform_volume && !m_tau_given && !m_tau_table_constant)
+                m_uniform_volume = m_thick_volume = optically_thick();
+        }
         if (m_uniform_volume) {
             SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
-            m_volume = volume_constants(albedo(si, true), tau_o(si, true), m_g);
+            // optically thick (see optically_thick): s(c0) = 1 / (2 c0), and tau_o, which
+            // neither L2 nor C then reads, is set to its smallest value (x0 below)
+            m_volume = volume_constants(albedo(si, true),
+                                        m_thick_volume ? UnpolarizedSpectrum(dr::min(m_tau_table))
+                                                       : tau_o(si, true),
+                                        m_g);
+            if (m_thick_volume)
+                m_volume.s_c0 = .5f / m_volume.c0;
             dr::make_opaque(m_volume.rho, m_volume.rho2_3, m_volume.c0_sq, m_volume.c0,
                             m_volume.s_c0, m_volume.tau);
         }
@@ -692,8 +703,8 @@ public:
         }
         // (x0 in double from single-precision values; eval's x in single precision can be
         // a few ulp below it: the margin keeps both decisions on the safe side)
-        x0 *= 1.0 - 1e-5;
-        m_coherent_saturated = x0 >= 18.0;
+        x0 *= 1.0 - SaturationMargin;
+        m_coherent_saturated = m_thick_volume || x0 >= CoherentSaturation;
         m_coherent_series = !(x0 >= CoherentSeriesLimit);
 
         // Detached means, used only to weight the sampling lobes
@@ -1515,6 +1526,39 @@ private:
         return volume_constants(albedo(si, active), tau_o(si, active), g);
     }
 
+    /**
+     * Spectral variants, an albedo that is one number and tau_o from the Fresnel table:
+     * whether the layer is optically thick at every wavelength, x0 = 2 c0 tau_o >=
+     * ThickLimit at every node of the table (c0 from the albedo and g, tau_o its smallest
+     * entry). s(c) = (1 - exp(-2 c tau_o)) / (2 c) (MODEL.md Eq. 9b) depends on tau_o
+     * only through exp(-2 c tau_o) <= exp(-x0) <= 2^-18 (3.8e-6) for every c >= c0: eval
+     * takes s(c) = 1 / (2 c), so that neither L2 nor C depends on tau_o, the volume
+     * constants are the same for every wavelength and are computed once per parameter
+     * change, and eval reads no table and skips the exponential of C. L2 and C change by
+     * at most 3.8e-6 relative (tests/test_fast_paths.py); their derivatives with respect
+     * to the albedo and g by at most x0 exp(-x0).
+     */
+    bool optically_thick() const {
+        Float rho = m_albedo->eval(dr::zeros<SurfaceInteraction3f>(1), true)[0],
+              c0 = dr::sqrt(dr::maximum(3.f * (1.f - rho) * (1.f - rho * m_g), 0.f));
+        double x0 = std::get<0>(powder_param::lane_range(
+            2.f * dr::detach(c0) * dr::min(dr::detach(m_tau_table))));
+        return x0 * (1.0 - SaturationMargin) >= ThickLimit;
+    }
+
+    /// Smallest x0 = 2 c0 tau_o for which spectral variants treat the layer as optically
+    /// thick (optically_thick): 18 ln 2, where exp(-x0) = 2^-18
+    static constexpr double ThickLimit = 12.476649250079015;
+
+    /// Smallest x = 2 c tau_o from which 1 - exp(-x) rounds to 1 in single precision
+    /// (exp(-18) < 2^-25); C skips the exponential there
+    static constexpr double CoherentSaturation = 18.0;
+
+    /// Relative margin by which x0, computed in double from single-precision values, must
+    /// clear CoherentSaturation and CoherentSeriesLimit (eval's x in single precision can
+    /// be a few ulp below it)
+    static constexpr double SaturationMargin = 1e-5;
+
     /// Smallest x = 2 c tau_o for which C takes (1 - exp(-x)) / x in closed form
     /// (below it, its series: powder::one_minus_exp_neg_over_x)
     static constexpr double CoherentSeriesLimit = 0.03;
@@ -1529,7 +1573,8 @@ private:
     /// How eval obtains the volume constants (to_string, tests)
     std::string volume_path() const {
         if (m_uniform_volume)
-            return "once per parameter change";
+            return m_thick_volume ? "once per parameter change (optically thick)"
+                                  : "once per parameter change";
         if (m_tabulated_volume)
             return m_volume_table_rho_given ? "1 nm table of s(c0), tau_o"
                                             : "1 nm table of rho, s(c0), tau_o";
@@ -2001,7 +2046,9 @@ private:
             // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
             // x = 2 c tau (powder::s_func), its series below x = 0.03
             UnpolarizedSpectrum x = 2.f * c * k.tau, C;
-            if (m_coherent_saturated) { // x >= 18 everywhere: 1 - exp(-x) == 1
+            if (m_coherent_saturated) {
+                // x >= 18 everywhere: 1 - exp(-x) == 1; or optically thick (within 2^-18 of
+                // 1): s(c) = 1 / (2 c), whatever tau_o > 0 (here its smallest value)
                 C = k.rho2_3 * (h * x + k.tau) / (x * denom);
             } else if (!m_coherent_series) { // x >= 0.03 everywhere: no series
                 C = k.rho2_3 * (h * x + k.tau * (1.f - dr::exp(-dr::minimum(x, 20.f)))) /
@@ -2434,9 +2481,14 @@ private:
     std::vector<std::complex<double>> m_index;     ///< n + i k at those wavelengths
     UnpolarizedSpectrum m_k0_kappa = 0.f; ///< RGB and mono: k0 / kappa per channel
     FloatStorage m_packed;          ///< spectral: grain tables for lookup_grains
-    VolumeConstants m_volume;       ///< when m_uniform_volume (rho, c0: m_volume_table_rho_given)
+    /// when m_uniform_volume (rho, c0: m_volume_table_rho_given; m_thick_volume: tau_o is the
+    /// smallest of the table, read by nothing but the bound x0)
+    VolumeConstants m_volume;
     bool m_uniform_volume = false;
-    bool m_coherent_saturated = false; ///< 2 c0 tau_o >= 18 in every channel
+    /// 2 c0 tau_o >= 18 in every channel, or m_thick_volume
+    bool m_coherent_saturated = false;
+    /// spectral: m_uniform_volume because the layer is optically thick (optically_thick)
+    bool m_thick_volume = false;
     bool m_coherent_series = true;     ///< some 2 c0 tau_o < CoherentSeriesLimit
     /// spectral: (rho, s(c0), tau_o) on the 1 nm grid (update_volume_table)
     FloatStorage m_volume_table;
