@@ -47,7 +47,8 @@ def tables(results: Path) -> dict[str, str]:
         ("eval_cost_vs_principled", "eval cost / principled", ".2f")])
     out["eval_breakdown"] = md_table(load("eval_breakdown")["rows"], [
         ("variant", "variant", "s"), ("configuration", "configuration", "s"),
-        ("ms", "eval ms", ".2f"), ("cost_vs_principled", "eval cost / principled", ".2f")])
+        ("volume", "volume constants", "s"), ("ms", "eval ms", ".2f"),
+        ("cost_vs_principled", "eval cost / principled", ".2f")])
     py = load("python_bsdf")
     out["python_bsdf"] = md_table(py["rows"], [
         ("variant", "variant", "s"), ("implementation", "implementation", "s"),
