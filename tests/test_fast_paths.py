@@ -163,6 +163,32 @@ def test_the_saturated_coherent_path_is_exercised():
     assert np.all(2 * c0 * tau >= 18.0), tau
 
 
+@pytest.mark.parametrize("values,path", [([-0.5, 0.0, 0.3, 0.5], THICK),
+                                         ([-0.5, 0.0, 0.8, 0.5], "per lane")],
+                         ids=["all_thick", "one_lane_not_thick"])
+def test_spectral_thick_only_if_every_lane_is(values, path):
+    """g set to one value per lane (batched fits) in llvm_ad_spectral, albedo 0.7: the layer
+    is optically thick only if every lane is (2 c0 tau_o >= 12.48 for g <= 0.549; 0.8 is not).
+    Each lane equals a separately loaded instance (thick or 1 nm table) within the thick
+    path's bound."""
+    use_variant("llvm_ad_spectral")
+    base = {"type": "powder", "albedo": 0.7, "extinction": 0.7, "amplitude_surface": 1e-3}
+    batched = mi.load_dict({**base, "g": 0.1})
+    params = mi.traverse(batched)
+    params["g"] = mi.Float(np.array(values, dtype=np.float32))
+    params.update()
+    assert volume_path(batched) == path
+    wi, wo, lam = spectral_pairs(len(values), 11)
+    wo[:] = wi * np.array([0.9999, 0.9999, 1.0])  # near the coherent cone
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    got = evaluate(batched, wi, wo, lam)
+    for i, v in enumerate(values):
+        single = mi.load_dict({**base, "g": v})
+        assert volume_path(single) == (TABLE4 if v == 0.8 else THICK)
+        want = evaluate(single, wi[i:i + 1], wo[i:i + 1], lam[i:i + 1])
+        np.testing.assert_allclose(got[i], want[0], rtol=6e-6, atol=0, err_msg=str(v))
+
+
 @pytest.mark.parametrize("variant,name", [("llvm_ad_rgb", "albedo"), ("llvm_ad_rgb", "tau_o"),
                                           ("llvm_ad_mono", "tau_o")])
 def test_one_value_per_lane_takes_every_lane_into_account(variant, name):
