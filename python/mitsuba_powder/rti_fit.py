@@ -871,8 +871,10 @@ def _grain_start(ev: _Evaluator, obs: np.ndarray, weight: np.ndarray, gain: np.n
     grid ``size_grid`` (``rho(r)`` has several branches) with its Lambertian normal ``slopes``
     and keeps the one of least weighted residual; all pixels at once, one model evaluation per
     trial. With ``amplitude_volume`` free each trial takes its best value in closed form (the
-    model is ``A_v V + S``, linear in it: two evaluations per trial give V and S); with
-    ``extinction`` free the trials also run over :data:`START_EXTINCTIONS`.
+    model is ``A_v V + S``, linear in it: S, which depends on neither the size nor the
+    extinction, is evaluated once with ``A_v = 0``, and each trial's evaluation with
+    ``A_v = 1`` gives V); with ``extinction`` free the trials also run over
+    :data:`START_EXTINCTIONS`.
 
     Returns:
         the start size per pixel (P,) and start values (P,) of the free properties it chose.
@@ -886,6 +888,14 @@ def _grain_start(ev: _Evaluator, obs: np.ndarray, weight: np.ndarray, gain: np.n
     best = {"size": np.zeros(npix), "amplitude_volume": np.ones(npix),
             "extinction": np.ones(npix)}
     av_spec = specs["amplitude_volume"]
+    chunks = _chunks(npix, k, max_lanes)
+    surface = []  # per chunk: S, the model at A_v = 0 (the surface lobe alone)
+    if free_av:
+        for sl in chunks:
+            part = {n: x[sl] for n, x in base.items()}
+            value, _ = ev(slopes[sl], np.broadcast_to(size_rho[0], (len(slopes[sl]), 3)),
+                          {**part, "amplitude_volume": np.zeros(len(slopes[sl]))}, d)
+            surface.append(value * gain[None, :, None])
     for ext in exts:
         vals = dict(base)
         if ext is not None:
@@ -893,14 +903,13 @@ def _grain_start(ev: _Evaluator, obs: np.ndarray, weight: np.ndarray, gain: np.n
         for i in range(0, len(size_grid), max(len(size_grid) // START_SIZES, 1)):
             rho = np.broadcast_to(size_rho[i], (npix, 3))
             cost, av = np.zeros(npix), np.ones(npix)
-            for sl in _chunks(npix, k, max_lanes):
+            for j, sl in enumerate(chunks):
                 part = {n: x[sl] for n, x in vals.items()}
                 if free_av:
                     unit = np.ones(len(slopes[sl]))
                     one, _ = ev(slopes[sl], rho[sl], {**part, "amplitude_volume": unit}, d)
-                    two, _ = ev(slopes[sl], rho[sl], {**part, "amplitude_volume": 2 * unit}, d)
-                    vol = (two - one) * gain[None, :, None]
-                    surf = (2 * one - two) * gain[None, :, None]
+                    surf = surface[j]
+                    vol = one * gain[None, :, None] - surf
                     wv = weight[sl, :, None] * vol
                     num = np.sum(wv * (obs[sl] - surf), axis=(1, 2))
                     den = np.maximum(np.sum(wv * vol, axis=(1, 2)), 1e-30)
