@@ -196,12 +196,14 @@ def assert_updates_reuse_kernels(bsdf, updates: list[tuple[str, float]]) -> None
 #: spectral paths of the volume constants (tests/test_fast_paths.py): computed once per
 #: parameter change (one-number albedo, tau_o given; or optically thick, with g = 0.3:
 #: 2 c0 tau_o >= 14.1), or tabulated on the 1 nm grid (4 or 8 values per record; albedo 0.8:
-#: 2 c0 tau_o >= 11.3)
+#: 2 c0 tau_o >= 11.3; 100 nm grains: >= 10.9; or, optically thick, rho alone: 50 nm grains,
+#: >= 19.5)
 SPECTRAL_CASES = {
     "uniform": {"albedo": 0.8, "tau_o": 1.5},
     "thick": {"albedo": 0.7},
     "table_albedo": {"albedo": 0.8},
     "table_mie": {"radius": 0.1},
+    "thick_table_mie": {"radius": 0.05},
 }
 
 
@@ -216,7 +218,7 @@ def test_spectral_gradients_match_finite_differences(case, lobes):
     bsdf = mi.load_dict({"type": "powder", "amplitude_volume": 1.2, "g": 0.3,
                          "extinction": 1.5, "amplitude_surface": 1e-3, "energy": "paper",
                          "lobes": lobes, **SPECTRAL_CASES[case]})
-    assert ("optically thick" in str(bsdf)) == (case == "thick")
+    assert ("optically thick" in str(bsdf)) == case.startswith("thick")
     params = mi.traverse(bsdf)
     keys = [k for k in ("albedo.value", "g", "tau_o", "radius", "amplitude_volume",
                         "extinction") if k in params.keys()]

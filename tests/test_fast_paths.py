@@ -5,7 +5,8 @@ exponential of the coherent term when 2 c0 tau_o >= 18 in every channel (its ser
 one-number tau_o (given, or from a constant index) or for a one-number albedo when the layer
 is optically thick at every wavelength (2 c0 tau_o >= 18 ln 2: s(c) = 1 / (2 c), within
 2^-18), and tabulate them on the 1 nm grid otherwise (s(c0) interpolated instead of
-recomputed); a spatially varying texture (here a constant bitmap) takes the general path."""
+recomputed; for an optically thick Mie albedo, rho alone); a spatially varying texture (here
+a constant bitmap) takes the general path."""
 
 from __future__ import annotations
 
@@ -45,13 +46,18 @@ TABLE8 = "1 nm table of rho, s(c0), tau_o"
 TABLE4 = "1 nm table of s(c0), tau_o"
 UNIFORM = "once per parameter change"
 THICK = "once per parameter change (optically thick)"
+THICK_TABLE = "1 nm table of rho (optically thick)"
 #: spectral cases: (properties, how the fast instance gets its volume constants); comments:
 #: the branch of C that x0 = 2 c0 tau_o selects (hematite's Fresnel tau_o is 8.38-18.8;
 #: g = 0.3; optically thick from x0 = 18 ln 2 = 12.48 on)
 SPECTRAL_CASES = {
-    "mie_fresnel": ({"radius": 0.1}, TABLE8),
+    "mie_fresnel": ({"radius": 0.1}, TABLE8),  # x0 = 10.9 (its bound over the intervals)
     "mie_tau_given": ({"radius": 0.1, "tau_o": 1.5}, TABLE8),
-    "mie_two_populations": ({"radius": 0.1, "radius2": 0.3, "fraction2": 0.4}, TABLE8),
+    "mie_thick": ({"radius": 0.05}, THICK_TABLE),  # x0 = 19.5
+    "mie_two_populations": ({"radius": 0.1, "radius2": 0.3, "fraction2": 0.4},
+                            THICK_TABLE),  # x0 = 14.0
+    "mie_two_populations_tau_given": ({"radius": 0.1, "radius2": 0.3, "fraction2": 0.4,
+                                       "tau_o": 1.5}, TABLE8),
     "albedo_fresnel": ({"albedo": 0.8}, TABLE4),  # closed form, x0 = 11.3
     "albedo_fresnel_below_thick": ({"albedo": 0.765}, TABLE4),  # x0 = 12.35
     "albedo_fresnel_thick_edge": ({"albedo": 0.756}, THICK),  # x0 = 12.6, exp(-x0) 3.4e-6
@@ -101,9 +107,25 @@ def test_spectral_volume_constants_match_general_path(variant, lobes, case):
     assert np.all(np.isfinite(a)) and np.all(a > 0)
     # a mix with 300 nm grains: 7.7e-5 (there the albedo's own 1 nm interpolation is 1e-3
     # from Mie at the exact wavelength, s(c0) 4.9e-4, the same both ways)
-    rtol = (1e-4 if case == "mie_two_populations" else 3e-5 if path == TABLE8
-            else 6e-6 if path == THICK else 5e-6)
+    rtol = (1e-4 if case == "mie_two_populations_tau_given" else 3e-5 if path == TABLE8
+            else 6e-6 if path in (THICK, THICK_TABLE) else 5e-6)
     np.testing.assert_allclose(a, b, rtol=rtol, atol=0)
+
+
+@pytest.mark.parametrize("lobes", ["multiple", "coherent"])
+def test_mie_thick_table_at_the_limit(lobes):
+    """100 nm hematite grains at g = 0: 2 c0 tau_o >= 12.85 over the grid's intervals, just
+    above the thick limit (12.48): the table holds rho alone, and L2 and C stay within
+    exp(-12.85) = 2.6e-6 (plus rounding) of the general path."""
+    use_variant("llvm_ad_spectral")
+    props = {"type": "powder", "radius": 0.1, "extinction": 0.7, "energy": "paper",
+             "lobes": lobes}
+    fast = mi.load_dict({**props, "g": 0.0})
+    general = mi.load_dict({**props, "g": constant_bitmap(0.0, 1)})
+    assert volume_path(fast) == THICK_TABLE
+    wi, wo, lam = spectral_pairs(20_000, 23)
+    np.testing.assert_allclose(evaluate(fast, wi, wo, lam), evaluate(general, wi, wo, lam),
+                               rtol=4.5e-6, atol=0)
 
 
 def test_spectral_paths_follow_parameter_edits():

@@ -704,7 +704,8 @@ public:
         // (x0 in double from single-precision values; eval's x in single precision can be
         // a few ulp below it: the margin keeps both decisions on the safe side)
         x0 *= 1.0 - SaturationMargin;
-        m_coherent_saturated = m_thick_volume || x0 >= CoherentSaturation;
+        m_coherent_saturated = m_thick_volume || (m_tabulated_volume && m_volume_table_thick) ||
+                               x0 >= CoherentSaturation;
         m_coherent_series = !(x0 >= CoherentSeriesLimit);
 
         // Detached means, used only to weight the sampling lobes
@@ -1536,7 +1537,9 @@ private:
      * constants are the same for every wavelength and are computed once per parameter
      * change, and eval reads no table and skips the exponential of C. L2 and C change by
      * at most 3.8e-6 relative (tests/test_fast_paths.py); their derivatives with respect
-     * to the albedo and g by at most x0 exp(-x0).
+     * to the albedo and g by at most x0 exp(-x0). The same holds for an albedo from the
+     * grain tables (table_thickness bounds x0 over every interval of the 1 nm grid): the
+     * table then holds rho alone, and eval computes c0 and s(c0) = 1 / (2 c0) from it.
      */
     bool optically_thick() const {
         Float rho = m_albedo->eval(dr::zeros<SurfaceInteraction3f>(1), true)[0],
@@ -1577,6 +1580,7 @@ private:
                                   : "once per parameter change";
         if (m_tabulated_volume)
             return m_volume_table_rho_given ? "1 nm table of s(c0), tau_o"
+                   : m_volume_table_thick   ? "1 nm table of rho (optically thick)"
                                             : "1 nm table of rho, s(c0), tau_o";
         return "per lane";
     }
@@ -1596,6 +1600,7 @@ private:
      */
     void update_volume_table() {
         m_volume_table_x0 = 0.0;
+        m_volume_table_thick = false;
         if (grain_textured() || textured(powder_param::G) || textured(powder_param::TauO) ||
             dr::width(m_g) != 1 || (m_tau_given && dr::width(m_tau_o) != 1))
             return;
@@ -1612,19 +1617,31 @@ private:
                      c0_sq = dr::maximum(3.f * (1.f - rho) * (1.f - rho * g), 0.f),
                      s_c0 = powder::s_func(dr::sqrt(c0_sq), tau);
         m_volume_table_rho_given = (bool) m_albedo;
+        // an albedo from the grain tables: optically thick (see optically_thick) when every
+        // interval of the grid clears ThickLimit; then the records hold rho only
+        m_volume_table_thick = !m_albedo && table_thickness(rho, tau) * (1.0 - SaturationMargin) >=
+                                                ThickLimit;
         if (m_albedo) {
             m_volume = volume_constants(UnpolarizedSpectrum(rho_value),
                                         UnpolarizedSpectrum(0.f), m_g);
             dr::make_opaque(m_volume.rho, m_volume.rho2_3, m_volume.c0_sq, m_volume.c0);
+        } else if (m_volume_table_thick) {
+            // tau_o, which neither L2 nor C then reads, is its smallest value (as in
+            // m_thick_volume); the other constants are computed per lane from rho
+            m_volume.tau = UnpolarizedSpectrum(Float(dr::min(dr::detach(tau))));
+            dr::make_opaque(m_volume.tau);
         }
-        // (s(c0), tau_o) or (rho, s(c0), tau_o, padding to a packet of 8)
+        // (s(c0), tau_o), (rho, s(c0), tau_o, padding to a packet of 8) or, optically thick,
+        // (rho)
         std::vector<const FloatStorage *> quantities;
         if (!m_albedo)
             quantities = { &rho };
-        quantities.push_back(&s_c0);
-        quantities.push_back(&tau);
-        if (!m_albedo)
+        if (!m_volume_table_thick) {
+            quantities.push_back(&s_c0);
             quantities.push_back(&tau);
+            if (!m_albedo)
+                quantities.push_back(&tau);
+        }
         const uint32_t R = 2 * (uint32_t) quantities.size(); // entries per record
         std::vector<uint32_t> node(R * n), quantity(R * n);
         for (uint32_t i = 0; i < (uint32_t) n; ++i)
@@ -1651,6 +1668,34 @@ private:
         // lower bound of 2 c0 tau_o over the interpolated values (for the shortcuts of C)
         m_volume_table_x0 = 2.0 * std::sqrt(std::max(min_of(c0_sq), 0.0)) * min_of(tau);
         m_tabulated_volume = true;
+    }
+
+    /**
+     * Lower bound of x0 = 2 c0 tau_o over the 1 nm grid with rho and tau_o interpolated
+     * linearly between its nodes (and c0 from rho and the one g): on each interval, rho is at
+     * most the larger of its two nodes, c0 (which decreases as rho grows, for every g in
+     * [-1, 1]) at least c0 of that, and tau_o at least the smaller node.
+     */
+    double table_thickness(const FloatStorage &rho_, const FloatStorage &tau_) const {
+        const uint32_t n = (uint32_t) dr::width(rho_);
+        FloatStorage rho = dr::detach(rho_), tau = dr::detach(tau_);
+        if constexpr (dr::is_jit_v<Float>) {
+            UInt32 i = dr::arange<UInt32>(n), next = dr::minimum(i + 1u, n - 1u);
+            Float rho_hi = dr::maximum(dr::gather<Float>(rho, i), dr::gather<Float>(rho, next)),
+                  tau_lo = dr::minimum(dr::gather<Float>(tau, i), dr::gather<Float>(tau, next)),
+                  g = dr::detach(m_g),
+                  c0 = dr::sqrt(dr::maximum(3.f * (1.f - rho_hi) * (1.f - rho_hi * g), 0.f));
+            return min_of(FloatStorage(2.f * c0 * tau_lo));
+        } else {
+            double x0 = powder_param::Inf, g = (double) m_g;
+            for (uint32_t i = 0; i < n; ++i) {
+                uint32_t j = std::min(i + 1, n - 1);
+                double r = std::max((double) rho[i], (double) rho[j]),
+                       t = std::min((double) tau[i], (double) tau[j]);
+                x0 = std::min(x0, 2.0 * std::sqrt(std::max(3.0 * (1 - r) * (1 - r * g), 0.0)) * t);
+            }
+            return x0;
+        }
     }
 
     /// n copies of a one-value parameter, differentiable (spectral volume table)
@@ -1681,15 +1726,17 @@ private:
             UnpolarizedSpectrum t = table_position(si);
             auto read = [&](auto packet) {
                 using Packet = decltype(packet);
-                constexpr size_t o = dr::size_v<Packet> == 8 ? 2 : 0; // offset of s(c0)
+                constexpr size_t o = dr::size_v<Packet> == 4 ? 0 : 2; // offset of s(c0)
                 for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
                     UInt32 i0 = UInt32(dr::floor(t[c]));
                     Packet v = dr::gather<Packet>(m_volume_table, i0, active);
                     Float w = t[c] - Float(i0);
                     if constexpr (o > 0)
                         k.rho[c] = dr::lerp(v[0], v[1], w);
-                    k.s_c0[c] = dr::lerp(v[o], v[o + 1], w);
-                    k.tau[c] = dr::lerp(v[o + 2], v[o + 3], w);
+                    if constexpr (dr::size_v<Packet> > 2) {
+                        k.s_c0[c] = dr::lerp(v[o], v[o + 1], w);
+                        k.tau[c] = dr::lerp(v[o + 2], v[o + 3], w);
+                    }
                 }
             };
             // masked lanes read zeros: tau_o = 1 there keeps x = 2 c tau_o > 0 in the
@@ -1702,11 +1749,18 @@ private:
                 k.c0_sq = m_volume.c0_sq;
                 k.c0 = m_volume.c0;
             } else {
-                read(dr::Array<Float, 8>());
+                if (m_volume_table_thick)
+                    read(dr::Array<Float, 2>());
+                else
+                    read(dr::Array<Float, 8>());
                 // as volume_constants(rho, tau, g): the same c0 as the general path
                 k.rho2_3 = 3.f * dr::square(k.rho);
                 k.c0_sq = dr::maximum(3.f * (1.f - k.rho) * (1.f - k.rho * m_g), 0.f);
                 k.c0 = dr::sqrt(k.c0_sq);
+                if (m_volume_table_thick) { // s(c0) = 1 / (2 c0): see optically_thick
+                    k.s_c0 = .5f / k.c0;
+                    k.tau = m_volume.tau;
+                }
             }
             unit_tau_in_masked_lanes();
         } else {
@@ -2494,6 +2548,9 @@ private:
     FloatStorage m_volume_table;
     bool m_tabulated_volume = false;
     bool m_volume_table_rho_given = false; ///< records of (s(c0), tau_o) only
+    /// records of rho only: an albedo from the grain tables, optically thick at every
+    /// wavelength (table_thickness; s(c0) = 1 / (2 c0), tau_o in m_volume.tau)
+    bool m_volume_table_thick = false;
     bool m_tau_table_constant = false;     ///< every entry of m_tau_table is the same
     double m_volume_table_x0 = 0.0; ///< smallest 2 c0 tau_o of m_volume_table
     /// RGB and mono: the entries of m_rho_table and m_tau_table, one per channel
