@@ -49,6 +49,9 @@ def tables(results: Path) -> dict[str, str]:
         ("variant", "variant", "s"), ("configuration", "configuration", "s"),
         ("volume", "volume constants", "s"), ("ms", "eval ms", ".2f"),
         ("cost_vs_principled", "eval cost / principled", ".2f")])
+    out["jit_ops"] = md_table(load("jit_ops")["rows"], [
+        ("operation", "operation", "s"), ("ms", "ms per operation", ".3f"),
+        ("cost_vs_fma", "cost / fma", ".1f")])
     py = load("python_bsdf")
     out["python_bsdf"] = md_table(py["rows"], [
         ("variant", "variant", "s"), ("implementation", "implementation", "s"),

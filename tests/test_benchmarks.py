@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = {
     "bench_bsdf.py": ("bsdf", ["eval M/s", "eval cost/diffuse"]),
     "bench_eval_breakdown.py": ("eval_breakdown", ["eval ms", "cost / principled"]),
+    "bench_jit_ops.py": ("jit_ops", ["ms per op", "cost / fma"]),
     "bench_python_bsdf.py": ("python_bsdf", ["eval speedup", "render speedup"]),
     "bench_render.py": ("render", ["gain", "DE00 mean", "cost/diffuse"]),
     "bench_mie_update.py": ("mie_update", ["update+AD ms", "Fresnel ms"]),
