@@ -15,7 +15,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import evaluate, random_hemisphere, use_variant
+from helpers import channel_wavelengths, evaluate, perturb, random_hemisphere, use_variant
+from reference import Params, brdf
 
 
 def constant_bitmap(value: float, channels: int):
@@ -325,3 +326,68 @@ def test_energy_conserving_takes_one_value_per_parameter():
         want = evaluate(mi.load_dict({**base, "amplitude_surface": float(a)}), wi[i:i + 1],
                         wo[i:i + 1])
         np.testing.assert_allclose(got[i], want[0], rtol=2e-6)
+
+
+def surface_exponent(wi: np.ndarray, wo: np.ndarray, lam_nm: np.ndarray, p) -> np.ndarray:
+    """Base-2 exponent t of the surface lobe's exp(-t ln 2) per lane and channel (N, C):
+    pi^2 l_c^2 f_s^2 (Harvey-Shack, MODEL.md Eq. 21-22) or theta_s^2 / (2 sigma^2) (Eq. 20)."""
+    if p.specular == "harvey_shack":
+        s2 = np.sum((wo[:, :2] + wi[:, :2]) ** 2, axis=1, keepdims=True)
+        x = np.pi**2 * p.correlation_length**2 * s2 / (lam_nm * 1e-3) ** 2
+    else:
+        mirror = wi * np.array([-1.0, -1.0, 1.0])
+        cos_t = np.sum(mirror * wo, axis=1, keepdims=True) / (
+            np.linalg.norm(mirror, axis=1, keepdims=True) * np.linalg.norm(wo, axis=1,
+                                                                           keepdims=True))
+        x = np.broadcast_to(np.arccos(np.clip(cos_t, -1, 1)) ** 2 / (2 * p.sigma**2),
+                            lam_nm.shape)
+    return x / np.log(2.0)
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral", "scalar_rgb"])
+@pytest.mark.parametrize("specular", ["harvey_shack", "gaussian"])
+def test_surface_exponential(variant, specular):
+    """The surface lobe's exponential (powder_lobes.h, exp2_neg: a degree-6 polynomial of
+    2^f in JIT variants, dr::exp2 in scalar ones) against float64 where its base-2 exponent
+    t <= 63: within 40 float32 ulp of the argument x = t ln 2, times x (2.4e-6 (1 + x)
+    relative; the float32 argument, not the exponential, sets the error: the scalar
+    variant's library exp2 is as far off, up to 10 ulp x for Harvey-Shack and 30 ulp x for
+    the Gaussian lobe's angle). Exactly 0 beyond t = 64.01 (2^-64 of the prefactor) in every
+    variant, and never a denormal float. With a gradient on the exponent (AD) JIT variants
+    call dr::exp2 on the same float32 argument (dr::exp for the Gaussian lobe, whose argument
+    is then rounded once less): the polynomial within 4e-7 (3 ulp), plus 2 ulp of x."""
+    use_variant(variant)
+    rng = np.random.default_rng(5)
+    n = 600 if variant.startswith("scalar") else 40_000
+    p = Params(amplitude_surface=1e-3, correlation_length=1.0, specular=specular, sigma=0.15,
+               lobes=("surface",)).as_float32()
+    wi = random_hemisphere(n, rng, 0.05)
+    mirror = wi * np.array([-1.0, -1.0, 1.0])
+    wo = random_hemisphere(n, rng, 0.05)
+    half = n // 2  # half near the mirror direction: exponents from 0 up
+    wo[:half] = perturb(mirror[:half], rng.uniform(0.0, 1.2, half), rng)
+    wi, wo = wi.astype(np.float32).astype(np.float64), wo.astype(np.float32).astype(np.float64)
+    lam = channel_wavelengths(n, rng)
+    bsdf = mi.load_dict({"type": "powder", "albedo": 0.5, **p.properties()})
+    got = evaluate(bsdf, wi, wo, lam)
+    want = brdf(wi, wo, np.full(lam.shape, 0.5), lam, p) * wo[:, 2:3]
+    t = surface_exponent(wi, wo, lam, p)
+    inside, outside = t <= 63.0, t > 64.01
+    assert inside.sum() > n // 10 and outside.sum() > n // 10  # both sides covered
+    rel = np.abs(got[inside] - want[inside]) / want[inside]
+    bound = 2.4e-6 * (1.0 + t[inside] * np.log(2.0))
+    assert np.all(rel <= bound), f"worst error / bound {np.max(rel / bound):.3g}"
+    assert np.all(got[outside] == 0.0)
+    tiny = np.finfo(np.float32).tiny
+    assert not np.any((got != 0.0) & (np.abs(got) < tiny)), "denormal values"
+    if variant.startswith("llvm"):
+        params = mi.traverse(bsdf)
+        key = "correlation_length" if specular == "harvey_shack" else "sigma"
+        dr.enable_grad(params[key])
+        params.update()
+        ad = evaluate(bsdf, wi, wo, lam)
+        assert np.all((ad == 0.0) == (got == 0.0))
+        x, nz = t * np.log(2.0), got != 0.0
+        # the Gaussian lobe's exp_neg(x) rounds x / ln 2 once more than dr::exp(-x)
+        rel = np.abs(ad[nz] - got[nz]) / got[nz]
+        assert np.all(rel <= 4e-7 + 1.2e-7 * x[nz]), f"AD path: worst {rel.max():.3g}"

@@ -949,6 +949,15 @@ private:
         }
     }
 
+    /// 1 / wavelength in 1/micrometre, one per channel (1e3 / lambda_nm: one division
+    /// per channel in spectral variants, constants otherwise)
+    UnpolarizedSpectrum inverse_wavelengths_um(const SurfaceInteraction3f &si) const {
+        if constexpr (is_spectral_v<Spectrum>)
+            return 1e3f / si.wavelengths;
+        else
+            return dr::rcp(wavelengths_um(si));
+    }
+
     /// Mean evaluation wavelength in micrometres (sets the sampling lobe widths)
     Float mean_wavelength(const SurfaceInteraction3f &si) const {
         if constexpr (is_spectral_v<Spectrum>) {
@@ -1631,17 +1640,16 @@ private:
             m_volume.tau = UnpolarizedSpectrum(Float(dr::min(dr::detach(tau))));
             dr::make_opaque(m_volume.tau);
         }
-        // (s(c0), tau_o), (rho, s(c0), tau_o, padding to a packet of 8) or, optically thick,
-        // (rho)
+        // (s(c0), tau_o) with a one-number albedo (rho and c0 in m_volume), (rho, s(c0),
+        // tau_o, padding to a packet of 8) or, optically thick, (rho). (Records of tau_o
+        // alone, with s(c0) computed in eval, made eval 1.16x slower: docs/benchmarks.md)
         std::vector<const FloatStorage *> quantities;
-        if (!m_albedo)
+        if (m_albedo)
+            quantities = { &s_c0, &tau };
+        else if (m_volume_table_thick)
             quantities = { &rho };
-        if (!m_volume_table_thick) {
-            quantities.push_back(&s_c0);
-            quantities.push_back(&tau);
-            if (!m_albedo)
-                quantities.push_back(&tau);
-        }
+        else
+            quantities = { &rho, &s_c0, &tau, &tau };
         const uint32_t R = 2 * (uint32_t) quantities.size(); // entries per record
         std::vector<uint32_t> node(R * n), quantity(R * n);
         for (uint32_t i = 0; i < (uint32_t) n; ++i)
@@ -1724,35 +1732,40 @@ private:
         VolumeConstants k;
         if constexpr (is_spectral_v<Spectrum>) {
             UnpolarizedSpectrum t = table_position(si);
-            auto read = [&](auto packet) {
+            // per channel, one packet of the two nodes of each quantity of a record;
+            // assign(c, value) receives value(q), quantity q interpolated at channel c
+            auto read = [&](auto packet, auto &&assign) {
                 using Packet = decltype(packet);
-                constexpr size_t o = dr::size_v<Packet> == 4 ? 0 : 2; // offset of s(c0)
                 for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
                     UInt32 i0 = UInt32(dr::floor(t[c]));
                     Packet v = dr::gather<Packet>(m_volume_table, i0, active);
                     Float w = t[c] - Float(i0);
-                    if constexpr (o > 0)
-                        k.rho[c] = dr::lerp(v[0], v[1], w);
-                    if constexpr (dr::size_v<Packet> > 2) {
-                        k.s_c0[c] = dr::lerp(v[o], v[o + 1], w);
-                        k.tau[c] = dr::lerp(v[o + 2], v[o + 3], w);
-                    }
+                    assign(c, [&](size_t q) { return dr::lerp(v[2 * q], v[2 * q + 1], w); });
                 }
             };
             // masked lanes read zeros: tau_o = 1 there keeps x = 2 c tau_o > 0 in the
             // closed forms of C (no 0 / 0 in lanes that are discarded anyway)
             auto unit_tau_in_masked_lanes = [&] { k.tau = dr::select(active, k.tau, 1.f); };
-            if (m_volume_table_rho_given) {
-                read(dr::Array<Float, 4>());
+            if (m_volume_table_rho_given) { // records of (s(c0), tau_o)
+                read(dr::Array<Float, 4>(), [&](size_t c, auto value) {
+                    k.s_c0[c] = value(0);
+                    k.tau[c] = value(1);
+                });
                 k.rho = m_volume.rho;
                 k.rho2_3 = m_volume.rho2_3;
                 k.c0_sq = m_volume.c0_sq;
                 k.c0 = m_volume.c0;
+                unit_tau_in_masked_lanes();
             } else {
-                if (m_volume_table_thick)
-                    read(dr::Array<Float, 2>());
-                else
-                    read(dr::Array<Float, 8>());
+                if (m_volume_table_thick) // records of rho
+                    read(dr::Array<Float, 2>(),
+                         [&](size_t c, auto value) { k.rho[c] = value(0); });
+                else // records of (rho, s(c0), tau_o, padding)
+                    read(dr::Array<Float, 8>(), [&](size_t c, auto value) {
+                        k.rho[c] = value(0);
+                        k.s_c0[c] = value(1);
+                        k.tau[c] = value(2);
+                    });
                 // as volume_constants(rho, tau, g): the same c0 as the general path
                 k.rho2_3 = 3.f * dr::square(k.rho);
                 k.c0_sq = dr::maximum(3.f * (1.f - k.rho) * (1.f - k.rho * m_g), 0.f);
@@ -1761,8 +1774,8 @@ private:
                     k.s_c0 = .5f / k.c0;
                     k.tau = m_volume.tau;
                 }
+                unit_tau_in_masked_lanes();
             }
-            unit_tau_in_masked_lanes();
         } else {
             DRJIT_MARK_USED(si);
             DRJIT_MARK_USED(active);
@@ -1916,7 +1929,7 @@ private:
                     si.wavelengths[c] = group_wavelength(group, c);
             VolumeConstants k = volume_constants(si, Mask(true));
             auto [ladder, coherent] = volume_terms(
-                lobes, si, wi, wo, k, k0_over_kappa(dr::rcp(wavelengths_um(si)), si, true), true);
+                lobes, si, wi, wo, k, k0_over_kappa(inverse_wavelengths_um(si), si, true), true);
             UnpolarizedSpectrum norm;
             for (uint32_t c = 0; c < C; ++c)
                 norm[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
@@ -1943,7 +1956,7 @@ private:
                     si.wi = wi;
                     VolumeConstants k = volume_constants(si, Mask(true));
                     auto [ladder, coherent] = volume_terms(
-                        lobes, si, wi, wo, k, k0_over_kappa(dr::rcp(wavelengths_um(si)), si, true),
+                        lobes, si, wi, wo, k, k0_over_kappa(inverse_wavelengths_um(si), si, true),
                         true);
                     for (uint32_t c = 0; c < C; ++c) {
                         rl[b * C + c] += (double) ladder[c] * weight;
@@ -2090,22 +2103,23 @@ private:
                3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
                alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
                u = (k0 / kappa) (mu_i - mu_o) */
-            Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod);
-            UnpolarizedSpectrum c = dr::sqrt(k.c0_sq + dr::square(k0_kappa) *
-                                             (dx * dx + dy * dy)),
-                u = k0_kappa * (mu_i - mu_o),
+            Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod),
+                  // (u q)^2 = (k0 / kappa)^2 ((mu_i - mu_o) q)^2: the per-lane factor once
+                  uq2 = dr::square((mu_i - mu_o) * q);
+            UnpolarizedSpectrum k0_kappa2 = dr::square(k0_kappa),
+                c = dr::sqrt(k.c0_sq + k0_kappa2 * (dx * dx + dy * dy)),
                 // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
                 w = c * q + mu_sum / (2.f * q),
-                denom = dr::square(w) + dr::square(u * q);
+                denom = dr::square(w) + k0_kappa2 * uq2;
             // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
             // x = 2 c tau (powder::s_func), its series below x = 0.03
-            UnpolarizedSpectrum x = 2.f * c * k.tau, C;
+            UnpolarizedSpectrum x = c * (2.f * k.tau), C;
             if (m_coherent_saturated) {
                 // x >= 18 everywhere: 1 - exp(-x) == 1; or optically thick (within 2^-18 of
                 // 1): s(c) = 1 / (2 c), whatever tau_o > 0 (here its smallest value)
                 C = k.rho2_3 * (h * x + k.tau) / (x * denom);
             } else if (!m_coherent_series) { // x >= 0.03 everywhere: no series
-                C = k.rho2_3 * (h * x + k.tau * (1.f - dr::exp(-dr::minimum(x, 20.f)))) /
+                C = k.rho2_3 * (h * x + k.tau * (1.f - powder::exp_neg(dr::minimum(x, 20.f)))) /
                     (x * denom);
             } else {
                 auto small = x < (ScalarFloat) CoherentSeriesLimit;
@@ -2113,7 +2127,7 @@ private:
                                     xl = dr::select(small, 1.f, x),
                     series = powder::one_minus_exp_neg_over_x_series(xs),
                     // (the clamp as in powder::one_minus_exp_neg: no value changes)
-                    one_minus_e = 1.f - dr::exp(-dr::minimum(xl, 20.f)),
+                    one_minus_e = 1.f - powder::exp_neg(dr::minimum(xl, 20.f)),
                     num = dr::select(small, h + k.tau * series,
                                      h * xl + k.tau * one_minus_e),
                     den = dr::select(small, denom, xl * denom);
@@ -2128,7 +2142,8 @@ private:
      * The BRDF (without the cosine factor) of MODEL.md, Eq. 23, for the enabled
      * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Directions outside `active` are
      * replaced by the normal so that no infinity reaches the gradients of
-     * masked-out lanes.
+     * masked-out lanes; the values of those lanes are finite but meaningless, and
+     * the callers (eval, eval_pdf_impl) set them to 0 after the cosine factor.
      */
     UnpolarizedSpectrum eval_brdf(const Lobes &lobes, const SurfaceInteraction3f &si,
                                   const Vector3f &wo_, const UnpolarizedSpectrum &lam,
@@ -2138,7 +2153,7 @@ private:
         Float mu_i = Frame3f::cos_theta(wi), mu_sum = mu_i + Frame3f::cos_theta(wo);
 
         UnpolarizedSpectrum result(0.f),
-            inv_lam = dr::rcp(lam); // 1 / lambda (1/um), for k0 / kappa and S
+            inv_lam = inverse_wavelengths_um(si); // 1 / lambda (1/um), for k0 / kappa and S
 
         if (lobes.single || lobes.multiple || lobes.coherent) {
             VolumeConstants k = volume_constants(si, active);
@@ -2158,26 +2173,29 @@ private:
                 /* S, MODEL.md Eq. 21-22 (Harvey-Shack, Gaussian PSD):
                    A_s' (4 pi^2 / lam^4) (mu_i + mu_o)^2 pi l_c^2 exp(-pi^2 l_c^2 f_s^2),
                    f_s = |wo_xy + wi_xy| / lam */
-                Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y();
-                UnpolarizedSpectrum inv_lam2 = dr::square(inv_lam),
-                    fs2 = (sx * sx + sy * sy) * inv_lam2;
-                Float lc2 = dr::square(at(powder_param::CorrelationLength, si, active));
-                S = (as * 4.f * dr::square(dr::Pi<ScalarFloat>) *
-                     dr::square(mu_sum) * dr::Pi<ScalarFloat> * lc2) *
-                    dr::square(inv_lam2) *
-                    dr::exp(-dr::square(dr::Pi<ScalarFloat>) * lc2 * fs2);
+                Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y(),
+                      lc2 = dr::square(at(powder_param::CorrelationLength, si, active)),
+                      // the factors that do not depend on lambda, grouped so that the
+                      // parameters' product is computed once per kernel, not per lane
+                      prefactor = (as * (4.f * dr::Pi<ScalarFloat> * dr::square(dr::Pi<ScalarFloat>)) *
+                                   lc2) * dr::square(mu_sum),
+                      // pi^2 l_c^2 |wo_xy + wi_xy|^2 / ln 2 (exp2_neg takes base-2 exponents)
+                      t = (dr::square(dr::Pi<ScalarFloat>) * dr::InvLogTwo<ScalarFloat> * lc2) *
+                          (sx * sx + sy * sy);
+                UnpolarizedSpectrum inv_lam2 = dr::square(inv_lam);
+                S = prefactor * dr::square(inv_lam2) * powder::exp2_neg(t * inv_lam2);
             } else {
                 /* S, MODEL.md Eq. 20 (Gaussian in the angle theta_s to the mirror
                    direction): A_s / (sigma sqrt(2 pi)) exp(-theta_s^2 / (2 sigma^2)) */
                 Float theta = mirror_angle(wi, wo),
                       sigma = at(powder_param::Sigma, si, active);
                 S = as * dr::InvSqrtTwoPi<ScalarFloat> / sigma *
-                    dr::exp(-dr::square(theta) / (2.f * dr::square(sigma)));
+                    powder::exp_neg(dr::square(theta) / (2.f * dr::square(sigma)));
             }
             result += S;
         }
 
-        return dr::select(active, result, 0.f);
+        return result;
     }
 
     /// Angle between wo and the mirror direction of wi (stable near 0)
