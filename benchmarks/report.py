@@ -49,6 +49,19 @@ def tables(results: Path) -> dict[str, str]:
         ("variant", "variant", "s"), ("configuration", "configuration", "s"),
         ("volume", "volume constants", "s"), ("ms", "eval ms", ".2f"),
         ("cost_vs_principled", "eval cost / principled", ".2f")])
+    out["eval_size"] = md_table(load("eval_size")["rows"], [
+        ("variant", "variant", "s"), ("log2_pairs", "log2 pairs", "d"),
+        ("powder_ms", "powder ms", ".3f"), ("principled_ms", "principled ms", ".3f"),
+        ("coloured_ms", "coloured principled ms", ".3f"),
+        ("cost_vs_principled", "eval cost / principled", ".2f"),
+        ("cost_vs_coloured", "eval cost / coloured principled", ".2f")])
+    out["ab"] = md_table(load("ab")["rows"], [
+        ("variant", "variant", "s"), ("configuration", "configuration", "s"),
+        ("baseline_vs_principled", "baseline / principled", ".2f"),
+        ("new_vs_principled", "new / principled", ".2f"),
+        ("new_vs_baseline", "new / baseline", ".3f"),
+        ("new_vs_baseline_fastest", "fastest new / fastest baseline", ".3f"),
+        ("max_rel_difference", "max rel. difference", ".1e")])
     out["jit_ops"] = md_table(load("jit_ops")["rows"], [
         ("operation", "operation", "s"), ("ms", "ms per operation", ".3f"),
         ("cost_vs_fma", "cost / fma", ".1f")])

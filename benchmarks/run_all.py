@@ -15,7 +15,8 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ["bench_bsdf.py", "bench_eval_breakdown.py", "bench_jit_ops.py", "bench_python_bsdf.py",
+SCRIPTS = ["bench_bsdf.py", "bench_eval_breakdown.py", "bench_eval_size.py", "bench_ab.py",
+           "bench_jit_ops.py", "bench_python_bsdf.py",
            "bench_render.py",
            "bench_mie_update.py", "bench_fit.py", "bench_memory.py", "bench_textures.py",
            "bench_rti_fit.py", "ptfe_reference_fit.py"]

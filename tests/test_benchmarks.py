@@ -15,6 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = {
     "bench_bsdf.py": ("bsdf", ["eval M/s", "eval cost/diffuse"]),
     "bench_eval_breakdown.py": ("eval_breakdown", ["eval ms", "cost / principled"]),
+    "bench_eval_size.py": ("eval_size", ["log2 pairs", "cost / coloured principled"]),
+    "bench_ab.py": ("ab", ["new / baseline", "max rel. difference"]),
     "bench_jit_ops.py": ("jit_ops", ["ms per op", "cost / fma"]),
     "bench_python_bsdf.py": ("python_bsdf", ["eval speedup", "render speedup"]),
     "bench_render.py": ("render", ["gain", "DE00 mean", "cost/diffuse"]),
@@ -57,6 +59,11 @@ def test_benchmark_quick_mode(script, quick_results):
         # (otherwise the speed comparison would compare different work)
         assert len(data["rows"]) == 6
         assert all(r["max_rel_difference"] < 1e-5 for r in data["rows"])
+    if name == "ab":
+        # without --baseline the A/B compares the installed plugin with itself: a control
+        # whose values must be identical
+        assert data["meta"]["baseline"].startswith("installed")
+        assert all(r["max_rel_difference"] == 0.0 for r in data["rows"])
 
 
 def test_report_fills_every_table(quick_results, tmp_path):

@@ -1,0 +1,127 @@
+"""A/B of two builds of the powder plugin in one process: the installed one against a baseline
+``powder.so`` (for example one built from an earlier commit), each configuration's eval timed
+in turn with both builds and with `principled`, so that a change of machine load hits them
+alike.
+
+On a shared virtual machine the time of the same kernel varies by 10-30 % from one process to
+the next. Two runs of bench_bsdf.py, one per build, then cannot resolve a change of 10 %,
+whereas the ratio of two kernels timed in turn in the same process repeats to about 2 %.
+Times are the kernels' own execution times (Dr.Jit's kernel history), not wall-clock times.
+Without ``--baseline`` the installed plugin is compared with itself: a control whose ratios
+should be 1 within that noise.
+
+    python benchmarks/bench_ab.py --baseline /path/to/old/powder.so [--pairs 22] [--quick]
+
+Build a baseline from an earlier commit, for the variants measured here, e.g.::
+
+    git worktree add /tmp/base COMMIT && cmake -S /tmp/base -B /tmp/base/build -G Ninja \\
+        -DPOWDER_VARIANTS=llvm_ad_rgb,llvm_ad_spectral && ninja -C /tmp/base/build powder
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from _common import arg_parser, barh_figure, print_table, random_pairs, save, use_variant
+
+BASE = {"albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}  # bench_bsdf.py's powder
+#: (label, extra properties); None removes the property from BASE
+CONFIGS = [
+    ("all", {}),
+    ("all, Gaussian lobe", {"specular": "gaussian"}),
+    ("all, tau_o 1.5", {"tau_o": 1.5}),
+    ("all, albedo 0.9", {"albedo": 0.9}),
+    ("all, Mie albedo", {"albedo": None, "radius": 0.05}),
+    ("coherent", {"lobes": "coherent"}),
+    ("surface", {"lobes": "surface"}),
+]
+BASELINE_NAME = "powder_baseline"
+
+
+def props(plugin: str, extra: dict) -> dict:
+    out = {"type": plugin, **BASE, **extra}
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def kernel_ms(bsdf, ctx, si, wo) -> float:
+    """Execution time (ms) of the kernels of one eval call."""
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.eval(bsdf.eval(ctx, si, wo))
+        dr.sync_thread()
+        history = dr.kernel_history()
+    return float(sum(e["execution_time"] for e in history if e["type"] == dr.KernelType.JIT))
+
+
+def measure(variant: str, folder: Path | None, n: int, repeat: int) -> list[dict]:
+    use_variant(variant)
+    baseline = "powder"
+    if folder is not None:
+        mi.file_resolver().prepend(str(folder))
+        baseline = BASELINE_NAME
+    si, wo = random_pairs(n, variant, seed=4)
+    ctx = mi.BSDFContext()
+    bsdfs = {"principled": mi.load_dict({"type": "principled"})}
+    for label, extra in CONFIGS:
+        bsdfs["new " + label] = mi.load_dict(props("powder", extra))
+        bsdfs["baseline " + label] = mi.load_dict(props(baseline, extra))
+    for bsdf in bsdfs.values():  # compile
+        kernel_ms(bsdf, ctx, si, wo)
+    times: dict[str, list[float]] = {k: [] for k in bsdfs}
+    for _ in range(repeat):
+        for label, bsdf in bsdfs.items():
+            times[label].append(kernel_ms(bsdf, ctx, si, wo))
+    t = {k: np.array(v) for k, v in times.items()}
+    rows = []
+    for label, _ in CONFIGS:
+        new, old = t["new " + label], t["baseline " + label]
+        a = np.asarray(bsdfs["new " + label].eval(ctx, si, wo))
+        b = np.asarray(bsdfs["baseline " + label].eval(ctx, si, wo))
+        floor = 1e-9 * float(np.abs(b).max()) + 1e-30
+        rows.append({"variant": variant, "configuration": label,
+                     "baseline_vs_principled": float(np.median(old / t["principled"])),
+                     "new_vs_principled": float(np.median(new / t["principled"])),
+                     "new_vs_baseline": float(np.median(new / old)),
+                     "new_vs_baseline_fastest": float(new.min() / old.min()),
+                     "max_rel_difference": float(np.max(np.abs(a - b) /
+                                                        np.maximum(np.abs(b), floor)))})
+    return rows
+
+
+def main() -> None:
+    ap = arg_parser(__doc__)
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="powder.so of the build to compare with (default: the installed one)")
+    ap.add_argument("--pairs", type=int, default=22, help="log2 of the direction pairs")
+    args = ap.parse_args()
+    n, repeat = (1 << 10, 2) if args.quick else (1 << args.pairs, 15)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = None
+        if args.baseline is not None:
+            if not args.baseline.is_file():
+                raise SystemExit(f"--baseline: no such file: {args.baseline}")
+            folder = Path(tmp)
+            (folder / "plugins").mkdir()
+            shutil.copy(args.baseline, folder / "plugins" / f"{BASELINE_NAME}.so")
+        rows = []
+        for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+            rows += measure(variant, folder, n, repeat)
+    print_table(rows, [("variant", "variant", "s"), ("configuration", "configuration", "s"),
+                       ("baseline_vs_principled", "baseline / principled", ".2f"),
+                       ("new_vs_principled", "new / principled", ".2f"),
+                       ("new_vs_baseline", "new / baseline", ".3f"),
+                       ("new_vs_baseline_fastest", "fastest new / fastest baseline", ".3f"),
+                       ("max_rel_difference", "max rel. difference", ".1e")])
+    save(args.out, "ab", rows, args.quick, pairs=n, repeats=repeat,
+         baseline=str(args.baseline) if args.baseline else "installed (control)")
+    barh_figure(args.out / "ab.png", [f"{r['variant'][8:]}: {r['configuration']}" for r in rows],
+                [r["new_vs_baseline"] for r in rows], "tab:green", "eval time, new / baseline")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""What eval cost / principled measures: the same ratio as bench_bsdf.py for batches of 2^16 to
+2^22 direction pairs, against `principled` with its default grey base colour and with a
+coloured one, in llvm_ad_rgb and llvm_ad_spectral.
+
+bench_bsdf.py evaluates 2^22 pairs per call and writes the values to memory. The inputs
+(wi, wo and, in spectral variants, four wavelengths per lane: 24-40 bytes) and the outputs
+(one float per channel) then pass through main memory, not the caches. The default
+`principled` is grey: its channels are one array, one float per lane, while the powder's
+are three (RGB) or four (spectral). Where memory is the bottleneck, the ratio measures these
+extra stores as much as the arithmetic; in small batches, which stay in the caches, it
+measures the arithmetic. Inside a render, eval's values stay in registers. The coloured
+`principled` (base colour 0.8, 0.5, 0.3) writes as many channels as the powder.
+
+Powder configuration: bench_bsdf.py's (``albedo 0.8, extinction 1, amplitude_surface
+1e-3``). Each batch size: the three BSDFs timed in turn within each of 21 repeats (after a
+warm-up call that compiles the kernels); a cost is the median of the per-repeat ratios.
+
+    python benchmarks/bench_eval_size.py [--quick]
+"""
+
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from _common import arg_parser, print_table, pyplot, random_pairs, save, use_variant
+
+POWDER = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
+COLOURED = {"type": "principled", "base_color": {"type": "rgb", "value": [0.8, 0.5, 0.3]}}
+
+
+def measure(variant: str, sizes: list[int], repeat: int) -> list[dict]:
+    """One row per batch size: the three eval times and the two cost ratios."""
+    use_variant(variant)
+    ctx = mi.BSDFContext()
+    bsdfs = {"powder": mi.load_dict(POWDER), "principled": mi.load_dict({"type": "principled"}),
+             "coloured": mi.load_dict(COLOURED)}
+    rows = []
+    for n in sizes:
+        si, wo = random_pairs(n, variant, seed=0)
+        times: dict[str, list[float]] = {k: [] for k in bsdfs}
+        for bsdf in bsdfs.values():  # compile
+            dr.eval(bsdf.eval(ctx, si, wo))
+            dr.sync_thread()
+        for _ in range(repeat):
+            for label, bsdf in bsdfs.items():
+                t = time.perf_counter()
+                dr.eval(bsdf.eval(ctx, si, wo))
+                dr.sync_thread()
+                times[label].append(time.perf_counter() - t)
+        t = {k: np.array(v) for k, v in times.items()}
+        rows.append({"variant": variant, "pairs": n, "log2_pairs": int(np.log2(n)),
+                     "powder_ms": 1e3 * float(np.median(t["powder"])),
+                     "principled_ms": 1e3 * float(np.median(t["principled"])),
+                     "coloured_ms": 1e3 * float(np.median(t["coloured"])),
+                     "cost_vs_principled": float(np.median(t["powder"] / t["principled"])),
+                     "cost_vs_coloured": float(np.median(t["powder"] / t["coloured"]))})
+    return rows
+
+
+def main() -> None:
+    args = arg_parser(__doc__).parse_args()
+    sizes, repeat = ([1 << 10, 1 << 12], 2) if args.quick else (
+        [1 << 16, 1 << 18, 1 << 20, 1 << 22], 21)
+    rows = []
+    for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
+        rows += measure(variant, sizes, repeat)
+    print_table(rows, [("variant", "variant", "s"), ("log2_pairs", "log2 pairs", "d"),
+                       ("powder_ms", "powder ms", ".3f"),
+                       ("principled_ms", "principled ms", ".3f"),
+                       ("coloured_ms", "coloured principled ms", ".3f"),
+                       ("cost_vs_principled", "cost / principled", ".2f"),
+                       ("cost_vs_coloured", "cost / coloured principled", ".2f")])
+    save(args.out, "eval_size", rows, args.quick, repeats=repeat)
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for variant, colour in (("llvm_ad_rgb", "tab:blue"), ("llvm_ad_spectral", "tab:orange")):
+        sel = [r for r in rows if r["variant"] == variant]
+        x = [r["log2_pairs"] for r in sel]
+        ax.plot(x, [r["cost_vs_principled"] for r in sel], "o-", color=colour,
+                label=f"{variant} / principled")
+        ax.plot(x, [r["cost_vs_coloured"] for r in sel], "s--", color=colour,
+                label=f"{variant} / coloured principled")
+    ax.set_xlabel("log2 direction pairs per call")
+    ax.set_ylabel("powder eval cost")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(args.out / "eval_size.png", dpi=100)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
