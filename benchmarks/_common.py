@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -60,6 +61,45 @@ def timeit(fn, repeat: int, warmup: int = 1) -> float:
         dr.sync_thread()
         times.append(time.perf_counter() - t)
     return float(np.median(times))
+
+
+def wall_seconds(call) -> float:
+    """Wall time of ``dr.eval(call())`` in seconds, the clock stopped after
+    ``dr.sync_thread()`` (Dr.Jit launches kernels asynchronously)."""
+    t = time.perf_counter()
+    dr.eval(call())
+    dr.sync_thread()
+    return time.perf_counter() - t
+
+
+def kernel_seconds(call) -> float:
+    """Execution time in seconds of the kernels that ``dr.eval(call())`` launches (Dr.Jit's
+    kernel history: no tracing, no Python)."""
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.eval(call())
+        dr.sync_thread()
+        history = dr.kernel_history()
+    return 1e-3 * float(sum(e["execution_time"] for e in history
+                            if e["type"] == dr.KernelType.JIT))
+
+
+def eval_calls(bsdfs: dict, ctx, si, wo) -> dict:
+    """{label: a function that evaluates that BSDF's ``eval`` at (si, wo)}, for time_in_turn."""
+    return {label: functools.partial(bsdf.eval, ctx, si, wo) for label, bsdf in bsdfs.items()}
+
+
+def time_in_turn(calls: dict, repeat: int, clock=wall_seconds) -> dict[str, np.ndarray]:
+    """Seconds of each of ``calls`` (label: function returning Dr.Jit values), timed in turn
+    within each of ``repeat`` rounds after one warm-up call each (kernel compilation), so that
+    a change of machine load hits them alike; ``clock`` times one call (wall_seconds or
+    kernel_seconds)."""
+    for call in calls.values():
+        clock(call)
+    times: dict[str, list[float]] = {k: [] for k in calls}
+    for _ in range(repeat):
+        for label, call in calls.items():
+            times[label].append(clock(call))
+    return {k: np.array(v) for k, v in times.items()}
 
 
 def machine() -> dict:

@@ -24,11 +24,20 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, barh_figure, print_table, random_pairs, save, use_variant
+from _common import (
+    arg_parser,
+    barh_figure,
+    eval_calls,
+    kernel_seconds,
+    print_table,
+    random_pairs,
+    save,
+    time_in_turn,
+    use_variant,
+)
 
 BASE = {"albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}  # bench_bsdf.py's powder
 #: (label, extra properties); None removes the property from BASE
@@ -49,15 +58,6 @@ def props(plugin: str, extra: dict) -> dict:
     return {k: v for k, v in out.items() if v is not None}
 
 
-def kernel_ms(bsdf, ctx, si, wo) -> float:
-    """Execution time (ms) of the kernels of one eval call."""
-    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-        dr.eval(bsdf.eval(ctx, si, wo))
-        dr.sync_thread()
-        history = dr.kernel_history()
-    return float(sum(e["execution_time"] for e in history if e["type"] == dr.KernelType.JIT))
-
-
 def measure(variant: str, folder: Path | None, n: int, repeat: int) -> list[dict]:
     use_variant(variant)
     baseline = "powder"
@@ -70,13 +70,7 @@ def measure(variant: str, folder: Path | None, n: int, repeat: int) -> list[dict
     for label, extra in CONFIGS:
         bsdfs["new " + label] = mi.load_dict(props("powder", extra))
         bsdfs["baseline " + label] = mi.load_dict(props(baseline, extra))
-    for bsdf in bsdfs.values():  # compile
-        kernel_ms(bsdf, ctx, si, wo)
-    times: dict[str, list[float]] = {k: [] for k in bsdfs}
-    for _ in range(repeat):
-        for label, bsdf in bsdfs.items():
-            times[label].append(kernel_ms(bsdf, ctx, si, wo))
-    t = {k: np.array(v) for k, v in times.items()}
+    t = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat, clock=kernel_seconds)
     rows = []
     for label, _ in CONFIGS:
         new, old = t["new " + label], t["baseline " + label]

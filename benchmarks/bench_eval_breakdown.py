@@ -22,13 +22,20 @@ turn within each of 9 repeats; a cost is the median of the per-repeat ratios to 
 
 from __future__ import annotations
 
-import time
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, barh_figure, print_table, random_pairs, save, use_variant
+from _common import (
+    arg_parser,
+    barh_figure,
+    eval_calls,
+    print_table,
+    random_pairs,
+    save,
+    time_in_turn,
+    use_variant,
+)
 
 BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
 LOBES = {"all": "all", "single": "single", "multiple": "multiple", "coherent": "coherent",
@@ -70,17 +77,8 @@ def measure(variant: str, n: int, repeat: int) -> list[dict]:
         bsdfs["all, the Mie albedo's values as a constant"] = mi.load_dict(props("all", {
             "albedo": {"type": "rgb", "value": [float(v) for v in rho.ravel()]}}))
     bsdfs["principled"] = mi.load_dict({"type": "principled"})
-    times: dict[str, list[float]] = {k: [] for k in bsdfs}
-    for bsdf in bsdfs.values():  # compile
-        dr.eval(bsdf.eval(ctx, si, wo))
-        dr.sync_thread()
-    for _ in range(repeat):
-        for label, bsdf in bsdfs.items():
-            t = time.perf_counter()
-            dr.eval(bsdf.eval(ctx, si, wo))
-            dr.sync_thread()
-            times[label].append(time.perf_counter() - t)
-    ref = np.array(times["principled"])
+    times = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat)
+    ref = times["principled"]
     return [{"variant": variant, "configuration": label, "volume": volume_path(bsdfs[label]),
              "ms": 1e3 * float(np.median(t)),
              "cost_vs_principled": float(np.median(np.array(t) / ref))}

@@ -20,13 +20,19 @@ warm-up call that compiles the kernels); a cost is the median of the per-repeat 
 
 from __future__ import annotations
 
-import time
-
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, print_table, pyplot, random_pairs, save, use_variant
+from _common import (
+    arg_parser,
+    eval_calls,
+    print_table,
+    pyplot,
+    random_pairs,
+    save,
+    time_in_turn,
+    use_variant,
+)
 
 POWDER = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
 COLOURED = {"type": "principled", "base_color": {"type": "rgb", "value": [0.8, 0.5, 0.3]}}
@@ -41,17 +47,7 @@ def measure(variant: str, sizes: list[int], repeat: int) -> list[dict]:
     rows = []
     for n in sizes:
         si, wo = random_pairs(n, variant, seed=0)
-        times: dict[str, list[float]] = {k: [] for k in bsdfs}
-        for bsdf in bsdfs.values():  # compile
-            dr.eval(bsdf.eval(ctx, si, wo))
-            dr.sync_thread()
-        for _ in range(repeat):
-            for label, bsdf in bsdfs.items():
-                t = time.perf_counter()
-                dr.eval(bsdf.eval(ctx, si, wo))
-                dr.sync_thread()
-                times[label].append(time.perf_counter() - t)
-        t = {k: np.array(v) for k, v in times.items()}
+        t = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat)
         rows.append({"variant": variant, "pairs": n, "log2_pairs": int(np.log2(n)),
                      "powder_ms": 1e3 * float(np.median(t["powder"])),
                      "principled_ms": 1e3 * float(np.median(t["principled"])),
