@@ -3,9 +3,10 @@
 in turn with both builds and with `principled`, so that a change of machine load hits them
 alike.
 
-On a shared virtual machine the time of the same kernel varies by 10-30 % from one process to
-the next. Two runs of bench_bsdf.py, one per build, then cannot resolve a change of 10 %,
-whereas the ratio of two kernels timed in turn in the same process repeats to about 2 %.
+On a shared virtual machine the ratios of bench_bsdf.py vary by 10-20 % from one run to the
+next. Two runs of it, one per build, then cannot resolve a change of 10 %, whereas the ratio
+of two kernels timed in turn in the same process repeats to about 3 % (a control run of this
+script at 2^22 pairs: medians 0.97-1.02, docs/benchmarks.md).
 Times are the kernels' own execution times (Dr.Jit's kernel history), not wall-clock times.
 Without ``--baseline`` the installed plugin is compared with itself: a control whose ratios
 should be 1 within that noise.
@@ -91,14 +92,18 @@ def main() -> None:
     ap = arg_parser(__doc__)
     ap.add_argument("--baseline", type=Path, default=None,
                     help="powder.so of the build to compare with (default: the installed one)")
-    ap.add_argument("--pairs", type=int, default=22, help="log2 of the direction pairs")
+    ap.add_argument("--pairs", type=int, default=22,
+                    help="log2 of the direction pairs, 10 to 24 (default 22)")
     args = ap.parse_args()
+    if not 10 <= args.pairs <= 24:
+        ap.error(f"--pairs: {args.pairs} is outside the valid range [10, 24] (log2 of the "
+                 "direction pairs: 2^24 pairs take 1-2 GiB)")
+    if args.baseline is not None and not args.baseline.is_file():
+        ap.error(f"--baseline: no such file: {args.baseline}")
     n, repeat = (1 << 10, 2) if args.quick else (1 << args.pairs, 15)
     with tempfile.TemporaryDirectory() as tmp:
         folder = None
         if args.baseline is not None:
-            if not args.baseline.is_file():
-                raise SystemExit(f"--baseline: no such file: {args.baseline}")
             folder = Path(tmp)
             (folder / "plugins").mkdir()
             shutil.copy(args.baseline, folder / "plugins" / f"{BASELINE_NAME}.so")

@@ -66,6 +66,18 @@ def test_benchmark_quick_mode(script, quick_results):
         assert all(r["max_rel_difference"] == 0.0 for r in data["rows"])
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--pairs", "30"], "--pairs: 30 is outside the valid range [10, 24]"),
+    (["--pairs", "-1"], "--pairs: -1 is outside the valid range [10, 24]"),
+    (["--baseline", "/nonexistent/powder.so"], "--baseline: no such file: /nonexistent"),
+])
+def test_ab_rejects_bad_options(args, message, tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_ab.py"), *args,
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    assert not (tmp_path / "ab.json").exists()
+
+
 def test_report_fills_every_table(quick_results, tmp_path):
     _, results = quick_results
     doc = tmp_path / "benchmarks.md"
