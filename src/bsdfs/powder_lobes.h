@@ -37,17 +37,18 @@ constexpr float ExpNegCut2 = 64.f;
  * 2^-t for t >= 0 (and +inf), for the exponentials of eval (the surface lobes, the
  * coherent term below saturation, finite thickness) and of the sampling densities.
  * JIT variants: -t = n + f with n the nearest integer and |f| <= 1/2, 2^f from the
- * degree-6 polynomial of Cephes' exp2f, 2^n from the exponent bits; within 2 ulp
- * of 2^-t (tests/test_fast_paths.py) in 17 kernel operations, where dr::exp takes 21 (it
- * also handles overflow, which these arguments cannot reach). Scalar variants, and
+ * degree-6 polynomial of Cephes' exp2f, 2^n from the exponent bits; within 3 ulp
+ * of dr::exp2 at the same argument (tests/test_fast_paths.py), in 19 operations of the
+ * LLVM kernel where dr::exp takes 22 (it also handles overflow, which these arguments
+ * cannot reach). Scalar variants, and
  * arguments that carry gradients (Dr.Jit's exact derivative rule), call dr::exp2.
  *
  * t > ExpNegCut2 gives 0 in every variant. These values are always multiplied by a
  * prefactor, and the products can be denormal floats (below 1.2e-38), which are
- * slow to compute with: on the AMD EPYC of docs/benchmarks.md, denormal values in a
- * few percent of the lanes of the Gaussian surface lobe made the whole eval 1.6
- * times slower. A term below 5.4e-20 of its prefactor is far below the float
- * resolution of any sum it enters.
+ * slow to compute with: on the AMD EPYC of docs/benchmarks.md, a version that returned
+ * 2^-125 instead of 0 (denormal products in most lanes of the Gaussian surface lobe)
+ * made that eval 1.5-1.6 times slower. A term below 5.4e-20 of its prefactor is far
+ * below the float resolution of any sum it enters.
  */
 template <typename T> T exp2_neg(const T &t) {
     T value;
