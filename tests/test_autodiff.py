@@ -99,6 +99,49 @@ def test_gradients_match_finite_differences(case):
         assert abs(grad - fd) <= 0.02 * abs(fd), f"{case} {key}[{comp}]: AD {grad}, FD {fd}"
 
 
+def invalid_lanes():
+    """Direction pairs that eval masks out (value 0): a cosine exactly 0, directions below
+    the horizon, wo = -wi, and the zero vectors of an interaction that was never set."""
+    wi = np.array([[0.6, 0.0, 0.8], [1.0, 0.0, 0.0], [0.6, 0.0, 0.8], [0.6, 0.0, -0.8],
+                   [0.0, 0.0, 0.0], [0.28, 0.96, 0.0], [0.0, 0.6, 0.8]])
+    wo = np.array([[1.0, 0.0, 0.0], [0.6, 0.0, 0.8], [-0.6, 0.0, -0.8], [0.6, 0.0, 0.8],
+                   [0.0, 0.0, 0.0], [-0.28, -0.96, 0.0], [0.0, 0.8, -0.6]])
+    return wi, wo
+
+
+@pytest.mark.parametrize("g", [0.3, 0.99, -0.99])
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_masked_lanes_add_no_gradient(case, g):
+    """Lanes that eval masks out (value 0) add nothing to any gradient, not even a NaN
+    from their discarded values: the gradients over valid and masked lanes together equal
+    those over the valid lanes alone, for strongly forward and backward scattering too."""
+    use_variant(VARIANT)
+    bsdf = mi.load_dict({**CASES[case], "g": g})
+    params = mi.traverse(bsdf)
+    si, wo, weights = geometry(300)
+    bad_wi, bad_wo = invalid_lanes()
+    n_bad = len(bad_wi)
+    wi_all = np.concatenate([np.array(si.wi).T, bad_wi]).astype(np.float32)
+    wo_all = np.concatenate([np.array(wo).T, bad_wo]).astype(np.float32)
+    si_all = dr.zeros(mi.SurfaceInteraction3f, len(wi_all))
+    si_all.wi = mi.Vector3f(*[wi_all[:, k] for k in range(3)])
+    wo_all_v = mi.Vector3f(*[wo_all[:, k] for k in range(3)])
+    w_all = mi.Float(np.concatenate([np.array(weights), np.ones(n_bad)]).astype(np.float32))
+    value = np.array(bsdf.eval(mi.BSDFContext(), si_all, wo_all_v))
+    assert np.all(value[:, -n_bad:] == 0.0)
+    for key in params.keys():
+        grads = []
+        for args in ((si, wo, weights), (si_all, wo_all_v, w_all)):
+            dr.enable_grad(params[key])
+            params.update()
+            dr.backward(loss(bsdf, *args))
+            grads.append(np.array(dr.grad(params[key]), dtype=np.float64).ravel())
+            dr.disable_grad(params[key])
+            params.update()
+        assert np.all(np.isfinite(grads[1])), (case, g, key, grads[1])
+        assert np.allclose(grads[1], grads[0], rtol=1e-5, atol=0.0), (case, g, key, grads)
+
+
 def gradients_and_differences(bsdf, params, keys=None, spectral: bool = False,
                               steps: dict[str, float] | None = None):
     """Per scalar parameter (all, or the Float parameters ``keys``): (key, component, AD

@@ -2062,17 +2062,14 @@ private:
                with the Henyey-Greenstein P = (1 - g^2) / t^(3/2),
                t = 1 + g^2 - 2 g cos(Theta), cos(Theta) = -dot(wi, wo),
                rewritten with non-negative terms so that it keeps its
-               precision when |g| -> 1:
-               g >= 0: t = (1 - g)^2 + g |wi + wo|^2
-               g <  0: t = (1 + g)^2 - g |wi - wo|^2
-               (|g| written as a select: the derivative of dr::abs at
-               g = 0 is 0, which gave a wrong d/dg at the default g = 0) */
-            Float g = at(powder_param::G, si, active);
-            Mask g_pos = g >= 0.f;
-            Float t = dr::select(g_pos, dr::square(1.f - g), dr::square(1.f + g)) +
-                      dr::select(g_pos, g, -g) *
-                          dr::select(g_pos, dr::squared_norm(wi + wo),
-                                     dr::squared_norm(wi - wo)),
+               precision when |g| -> 1: with sg = sign(g) (+1 at g = 0),
+               t = (1 - |g|)^2 + |g| |wi + sg wo|^2
+               (|g| written as sg g: the derivative of dr::abs at g = 0 is 0,
+               which gave a wrong d/dg at the default g = 0) */
+            Float g = at(powder_param::G, si, active),
+                  sg = dr::select(g >= 0.f, 1.f, -1.f), abs_g = sg * g,
+                  t = dr::square(1.f - abs_g) +
+                      abs_g * dr::squared_norm(dr::fmadd(sg, wo, wi)),
                   // P(Theta) / (mu_i + mu_o) as one division
                   factor = (1.f - dr::square(g)) / (t * dr::sqrt(t) * mu_sum);
             if (m_finite_thickness) {
@@ -2102,25 +2099,26 @@ private:
             /* C, MODEL.md Eq. 9c with Eq. 10:
                3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
                alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
-               u = (k0 / kappa) (mu_i - mu_o) */
-            Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), q = dr::sqrt(mu_prod),
-                  // (u q)^2 = (k0 / kappa)^2 ((mu_i - mu_o) q)^2: the per-lane factor once
-                  uq2 = dr::square((mu_i - mu_o) * q);
+               u = (k0 / kappa) (mu_i - mu_o), 1/(2v) = h. The denominator written
+               without 1/mu (no square root of mu_i mu_o, one division fewer): with
+               p = 2 mu_i mu_o, 4 mu_i mu_o [mu_i mu_o ((c + v)^2 + u^2)] =
+               (c p + mu_i + mu_o)^2 + (k0 / kappa)^2 ((mu_i - mu_o) p)^2 =: D, so
+               C = 3 rho^2 2 p [h + s(c)] / D, with h + s(c) = [h x + tau (1 - exp(-x))] / x,
+               x = 2 c tau (s(c) as powder::s_func, its series below x = 0.03) */
+            Float dx = wo.x() - wi.x(), dy = wo.y() - wi.y(), p = 2.f * mu_prod,
+                  up2 = dr::square((mu_i - mu_o) * p);
             UnpolarizedSpectrum k0_kappa2 = dr::square(k0_kappa),
                 c = dr::sqrt(k.c0_sq + k0_kappa2 * (dx * dx + dy * dy)),
-                // mu_i mu_o ((c + v)^2 + u^2), written without 1/mu
-                w = c * q + mu_sum / (2.f * q),
-                denom = dr::square(w) + k0_kappa2 * uq2;
-            // [h + s(c)] / denom as one division: s(c) = tau (1 - exp(-x)) / x with
-            // x = 2 c tau (powder::s_func), its series below x = 0.03
-            UnpolarizedSpectrum x = c * (2.f * k.tau), C;
+                D = dr::square(dr::fmadd(c, p, mu_sum)) + k0_kappa2 * up2,
+                x = c * (2.f * k.tau), prefactor = k.rho2_3 * (2.f * p), C;
             if (m_coherent_saturated) {
                 // x >= 18 everywhere: 1 - exp(-x) == 1; or optically thick (within 2^-18 of
                 // 1): s(c) = 1 / (2 c), whatever tau_o > 0 (here its smallest value)
-                C = k.rho2_3 * (h * x + k.tau) / (x * denom);
+                C = prefactor * dr::fmadd(h, x, k.tau) / (x * D);
             } else if (!m_coherent_series) { // x >= 0.03 everywhere: no series
-                C = k.rho2_3 * (h * x + k.tau * (1.f - powder::exp_neg(dr::minimum(x, 20.f)))) /
-                    (x * denom);
+                C = prefactor *
+                    dr::fmadd(h, x, k.tau * (1.f - powder::exp_neg(dr::minimum(x, 20.f)))) /
+                    (x * D);
             } else {
                 auto small = x < (ScalarFloat) CoherentSeriesLimit;
                 UnpolarizedSpectrum xs = dr::select(small, x, 0.f),
@@ -2129,9 +2127,8 @@ private:
                     // (the clamp as in powder::one_minus_exp_neg: no value changes)
                     one_minus_e = 1.f - powder::exp_neg(dr::minimum(xl, 20.f)),
                     num = dr::select(small, h + k.tau * series,
-                                     h * xl + k.tau * one_minus_e),
-                    den = dr::select(small, denom, xl * denom);
-                C = k.rho2_3 * num / den;
+                                     dr::fmadd(h, xl, k.tau * one_minus_e));
+                C = prefactor * num / (xl * D);
             }
             coherent = C;
         }
@@ -2140,16 +2137,21 @@ private:
 
     /**
      * The BRDF (without the cosine factor) of MODEL.md, Eq. 23, for the enabled
-     * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Directions outside `active` are
-     * replaced by the normal so that no infinity reaches the gradients of
-     * masked-out lanes; the values of those lanes are finite but meaningless, and
-     * the callers (eval, eval_pdf_impl) set them to 0 after the cosine factor.
+     * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Outside `active`, the cosines
+     * mu_i and mu_o are replaced by 1, so that no lane divides by 0 (every term is
+     * finite for finite x and y components); the values of those lanes are
+     * meaningless, and the callers (eval, eval_pdf_impl) set them to 0 after the
+     * cosine factor, which also keeps them out of every gradient
+     * (tests/test_autodiff.py). Only the cosines: a select of the x and y components
+     * with the mask compiles to masked loads, which wait for the cosines' loads and
+     * the comparison; beyond the caches that made the whole eval 1.5-2x slower
+     * (docs/benchmarks.md, "What the ratio measures").
      */
     UnpolarizedSpectrum eval_brdf(const Lobes &lobes, const SurfaceInteraction3f &si,
                                   const Vector3f &wo_, const UnpolarizedSpectrum &lam,
                                   Mask active) const {
-        Vector3f wi = dr::select(active, si.wi, Vector3f(0.f, 0.f, 1.f)),
-                 wo = dr::select(active, wo_, Vector3f(0.f, 0.f, 1.f));
+        Vector3f wi(si.wi.x(), si.wi.y(), dr::select(active, si.wi.z(), 1.f)),
+                 wo(wo_.x(), wo_.y(), dr::select(active, wo_.z(), 1.f));
         Float mu_i = Frame3f::cos_theta(wi), mu_sum = mu_i + Frame3f::cos_theta(wo);
 
         UnpolarizedSpectrum result(0.f),
