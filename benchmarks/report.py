@@ -53,6 +53,7 @@ def tables(results: Path) -> dict[str, str]:
         ("variant", "variant", "s"), ("log2_pairs", "log2 pairs", "d"),
         ("powder_ms", "powder ms", ".3f"), ("principled_ms", "principled ms", ".3f"),
         ("coloured_ms", "coloured principled ms", ".3f"),
+        ("floor_ms", "memory floor ms", ".3f"),
         ("cost_vs_principled", "eval cost / principled", ".2f"),
         ("cost_vs_coloured", "eval cost / coloured principled", ".2f")])
     out["ab"] = md_table(load("ab")["rows"], [

@@ -78,6 +78,16 @@ def test_ab_rejects_bad_options(args, message, tmp_path):
     assert not (tmp_path / "ab.json").exists()
 
 
+@pytest.mark.parametrize("threads", ["0", "-3", "1000"])
+def test_eval_size_rejects_bad_threads(threads, tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "bench_eval_size.py"),
+                           "--threads", threads, "--quick", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    message = f"--threads: {threads} is outside the valid range [1, 256]"
+    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    assert not (tmp_path / "eval_size.json").exists()
+
+
 def test_report_fills_every_table(quick_results, tmp_path):
     _, results = quick_results
     doc = tmp_path / "benchmarks.md"
