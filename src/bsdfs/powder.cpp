@@ -2144,8 +2144,8 @@ private:
      * cosine factor, which also keeps them out of every gradient
      * (tests/test_autodiff.py). Only the cosines: a select of the x and y components
      * with the mask compiles to masked loads, which wait for the cosines' loads and
-     * the comparison; beyond the caches that made the whole eval 1.5-2x slower
-     * (docs/benchmarks.md, "What the ratio measures").
+     * the comparison; on batches beyond the caches that made the whole eval 1.5-1.7x
+     * slower, 2.6x with one thread (docs/benchmarks.md, issue 11's step 5).
      */
     UnpolarizedSpectrum eval_brdf(const Lobes &lobes, const SurfaceInteraction3f &si,
                                   const Vector3f &wo_, const UnpolarizedSpectrum &lam,
