@@ -114,7 +114,10 @@ def invalid_lanes():
 def test_masked_lanes_add_no_gradient(case, g):
     """Lanes that eval masks out (value 0) add nothing to any gradient, not even a NaN
     from their discarded values: the gradients over valid and masked lanes together equal
-    those over the valid lanes alone, for strongly forward and backward scattering too."""
+    those over the valid lanes alone, for strongly forward and backward scattering too.
+    (It fails if eval lets a masked lane's value through; the gradient half also holds
+    without eval's replacement of the masked cosines, because Dr.Jit's derivative of a
+    select drops the discarded lanes: it guards that behaviour, not the replacement.)"""
     use_variant(VARIANT)
     bsdf = mi.load_dict({**CASES[case], "g": g})
     params = mi.traverse(bsdf)
