@@ -13,7 +13,8 @@ from mitsuba_powder.cli import main
 from mitsuba_powder.measurements import Measurements, gonio_directions, save_measurements
 from mitsuba_powder.protocols import protocol_geometries, simulate
 
-HAPKE = {"w": 0.8, "b": 0.3, "c": 0.4, "B_s0": 1.0, "h_s": 0.06, "B_c0": 0.5, "h_c": 0.02}
+HAPKE = {"w": 0.8, "b": 0.3, "c": 0.4, "B_s0": 1.0, "h_s": 0.06, "B_c0": 0.5, "h_c": 0.02,
+         "theta_bar": 15.0}
 
 
 def test_rtlsr_kernels_known_values():
@@ -71,7 +72,7 @@ def test_fit_baseline_recovers_its_own_data(name, params):
     fitted = fit_baseline(name, baseline_data(name, params), starts=3)[0]
     data = baseline_data(name, params)
     assert np.max(np.abs(fitted.model_brf - data.brf) / data.brf) < 1e-3, fitted.parameters
-    if name != "hapke":  # Hapke's 7 parameters trade off; the BRF is what must match
+    if name != "hapke":  # Hapke's 8 parameters trade off; the BRF is what must match
         for k, v in params.items():
             assert fitted.parameters[k] == pytest.approx(v, rel=1e-2, abs=1e-3), k
 

@@ -11,9 +11,12 @@ powder plugin (its model lives in C++ only).
   BRDF): f_iso + f_vol K_vol + f_geo K_geo, with b/r = 1 and h/b = 2.
 - ``hapke``: Hapke's model with both opposition effects (Hapke 2002, 2012): shadow hiding
   (B_S0, h_S) and coherent back-scattering (B_C0, h_C), a two-term Henyey-Greenstein phase
-  function (b, c) and the 2002 approximation of the H function; no macroscopic roughness,
-  porosity factor K = 1. r = w/(4 pi) mu0/(mu0 + mu) [p(g) (1 + B_S0 B_S) + H(mu0) H(mu) - 1]
-  (1 + B_C0 B_C); BRF = pi r / mu0.
+  function (b, c), the 2002 approximation of the H function and the macroscopic roughness of
+  Hapke (1984) (mean slope angle theta_bar, 0-45 deg); porosity factor K = 1.
+  r = w/(4 pi) mu0e/(mu0e + mue) [p(g) (1 + B_S0 B_S) + H(mu0e) H(mue) - 1] (1 + B_C0 B_C)
+  S(i, e, psi); BRF = pi r / mu0 (mu0 = cos i, the true incidence). mu0e, mue and S are the
+  effective cosines and the shadowing function (:func:`hapke_roughness`); at theta_bar = 0
+  they are mu0, mu and 1 and the model is the smooth-surface one.
 
 Each model: name -> (function(params, wi, wo) -> BRF, parameter specs).
 """
@@ -85,8 +88,77 @@ def hapke_h(x: np.ndarray, w: float) -> np.ndarray:
     return 1.0 / (1.0 - w * x * (r0 + (1.0 - 2.0 * r0 * x) / 2.0 * np.log((1.0 + x) / x)))
 
 
+#: Bounds of Hapke's mean slope angle theta_bar (degrees)
+THETA_BAR_RANGE = (0.0, 45.0)
+
+
+def hapke_roughness(theta_bar: float, wi: np.ndarray, wo: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hapke's (1984; 2012, eqs. 12.46-12.55) macroscopic roughness for a mean slope angle
+    ``theta_bar`` (degrees): the effective cosines (mu0e, mue) and the shadowing function
+    S(i, e, psi), with psi the azimuth between the planes of incidence and emission (0 on the
+    light's side). With chi = 1 / sqrt(1 + pi tan^2 theta_bar),
+    E1(x) = exp(-(2/pi) cot theta_bar cot x), E2(x) = exp(-(1/pi) cot^2 theta_bar cot^2 x),
+    eta(x) = chi [cos x + sin x tan theta_bar E2(x) / (2 - E1(x))], f = exp(-2 tan(psi/2)):
+
+    - i <= e: D = 2 - E1(e) - (psi/pi) E1(i);
+      mu0e = chi [cos i + sin i tan theta_bar (cos psi E2(e) + sin^2(psi/2) E2(i)) / D],
+      mue = chi [cos e + sin e tan theta_bar (E2(e) - sin^2(psi/2) E2(i)) / D],
+      S = mue/eta(e) mu0/eta(i) chi / (1 - f + f chi mu0/eta(i));
+    - e <= i: D = 2 - E1(i) - (psi/pi) E1(e);
+      mu0e = chi [cos i + sin i tan theta_bar (E2(i) - sin^2(psi/2) E2(e)) / D],
+      mue = chi [cos e + sin e tan theta_bar (cos psi E2(i) + sin^2(psi/2) E2(e)) / D],
+      S = mue/eta(e) mu0/eta(i) chi / (1 - f + f chi mu/eta(e)).
+
+    Both cases agree at i = e; at theta_bar = 0 the result is exactly (mu0, mu, 1)."""
+    lo, hi = THETA_BAR_RANGE
+    theta_bar = float(theta_bar)
+    if not lo <= theta_bar <= hi:
+        raise ValueError(f"theta_bar = {theta_bar:g} deg is out of range; valid range is "
+                         f"[{lo:g}, {hi:g}] deg (Hapke's mean slope angle)")
+    mu0, mu = wi[:, 2], wo[:, 2]
+    if theta_bar == 0.0:
+        return mu0, mu, np.ones_like(mu0)
+    tan_t = math.tan(math.radians(theta_bar))
+    chi = 1.0 / math.sqrt(1.0 + math.pi * tan_t * tan_t)
+    sin_i, sin_e = np.hypot(wi[:, 0], wi[:, 1]), np.hypot(wo[:, 0], wo[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # cot x = cos x / sin x (inf at the normal, where E1 = E2 = 0)
+        cot_i = np.where(sin_i > 0.0, mu0 / sin_i, np.inf)
+        cot_e = np.where(sin_e > 0.0, mu / sin_e, np.inf)
+        cos_psi = np.where((sin_i > 0.0) & (sin_e > 0.0),
+                           np.sum(wi[:, :2] * wo[:, :2], axis=1) / (sin_i * sin_e), 1.0)
+    cos_psi = np.clip(cos_psi, -1.0, 1.0)  # psi is irrelevant where i = 0 or e = 0
+    psi = np.arccos(cos_psi)
+    sin2_half = 0.5 * (1.0 - cos_psi)  # sin^2(psi/2)
+    with np.errstate(divide="ignore", over="ignore"):
+        f = np.exp(-2.0 * np.sqrt(sin2_half / np.maximum(1.0 - sin2_half, 0.0)))  # tan(psi/2)
+
+    def e1(cot_x):
+        return np.exp(-2.0 / math.pi / tan_t * cot_x)
+
+    def e2(cot_x):
+        return np.exp(-(cot_x / tan_t) ** 2 / math.pi)
+
+    with np.errstate(over="ignore"):  # cot^2 x / tan^2 theta_bar -> inf: E2 = 0
+        e1_i, e1_e, e2_i, e2_e = e1(cot_i), e1(cot_e), e2(cot_i), e2(cot_e)
+    eta_i = chi * (mu0 + sin_i * tan_t * e2_i / (2.0 - e1_i))
+    eta_e = chi * (mu + sin_e * tan_t * e2_e / (2.0 - e1_e))
+    i_le_e = mu0 >= mu  # i <= e
+    d = np.where(i_le_e, 2.0 - e1_e - psi / math.pi * e1_i, 2.0 - e1_i - psi / math.pi * e1_e)
+    mu0e = chi * (mu0 + sin_i * tan_t * np.where(i_le_e, cos_psi * e2_e + sin2_half * e2_i,
+                                                 e2_i - sin2_half * e2_e) / d)
+    mue = chi * (mu + sin_e * tan_t * np.where(i_le_e, e2_e - sin2_half * e2_i,
+                                               cos_psi * e2_i + sin2_half * e2_e) / d)
+    ratio = np.where(i_le_e, mu0 / eta_i, mu / eta_e)
+    s = mue / eta_e * mu0 / eta_i * chi / (1.0 - f + f * chi * ratio)
+    return mu0e, mue, s
+
+
 def hapke(p: dict, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """Hapke's BRF; ``p["theta_bar"]`` (degrees, 0-45) may be left out: 0, a smooth surface."""
     mu0, mu, cos_g = _angles(wi, wo)
+    mu0e, mue, shadowing = hapke_roughness(p.get("theta_bar", 0.0), wi, wo)
     b, c, w = p["b"], p["c"], p["w"]
     hg = lambda s: (1 - b * b) / (1 + s * 2 * b * cos_g + b * b) ** 1.5  # noqa: E731
     phase = 0.5 * (1 + c) * hg(-1.0) + 0.5 * (1 - c) * hg(1.0)  # back lobe when c > 0
@@ -95,9 +167,9 @@ def hapke(p: dict, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     y = tan_half / p["h_c"]
     one_minus_exp_over_y = np.where(y > 1e-8, -np.expm1(-y) / np.maximum(y, 1e-300), 1.0)
     b_c = (1.0 + one_minus_exp_over_y) / (2.0 * (1.0 + y) ** 2)
-    r = w / (4 * np.pi) * mu0 / (mu0 + mu) * (phase * (1.0 + p["B_s0"] * b_s)
-                                              + hapke_h(mu0, w) * hapke_h(mu, w) - 1.0) \
-        * (1.0 + p["B_c0"] * b_c)
+    r = w / (4 * np.pi) * mu0e / (mu0e + mue) * (phase * (1.0 + p["B_s0"] * b_s)
+                                                 + hapke_h(mu0e, w) * hapke_h(mue, w) - 1.0) \
+        * (1.0 + p["B_c0"] * b_c) * shadowing
     return np.pi * r / mu0
 
 
@@ -114,7 +186,8 @@ MODELS: dict[str, tuple[Callable, dict[str, ParamSpec]]] = {
                       "B_s0": ParamSpec(0.0, 5.0, False, 1.0),
                       "h_s": ParamSpec(1e-3, 1.0, True, 0.05),
                       "B_c0": ParamSpec(0.0, 1.0, False, 0.5),
-                      "h_c": ParamSpec(1e-4, 1.0, True, 0.01)}),
+                      "h_c": ParamSpec(1e-4, 1.0, True, 0.01),
+                      "theta_bar": ParamSpec(*THETA_BAR_RANGE, False, 10.0)}),
 }
 
 
