@@ -361,13 +361,12 @@ def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: in
 def write_spectrum(path, wavelengths_nm, values) -> None:
     """A Mitsuba spectrum file (``<spectrum filename="..."/>``): one ``wavelength value`` line
     per wavelength (nm), increasing."""
-    from pathlib import Path
+    from .outputs import output_file
 
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
     order = np.argsort(wl)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
     lines = [f"{wl[i]:.6g} {float(values[i]):.9g}" for i in order]
-    Path(path).write_text("\n".join(lines) + "\n")
+    output_file(path).write_text("\n".join(lines) + "\n")
 
 
 def reflectance_of_srgb(rgb) -> tuple[np.ndarray, np.ndarray]:

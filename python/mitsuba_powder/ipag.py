@@ -76,6 +76,7 @@ from .measurements import (
     _check_range,
     format_number,
 )
+from .outputs import note_input, output_file, output_path
 
 CONVENTIONS = ("signed", "physical")
 ZERO_ERROR = ("raise", "unweighted", "skip")
@@ -95,6 +96,7 @@ _SAMPLE_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.+-]*(?:_[A-Za-z0-9.+-]+)*$")
 
 def read_lines(path: Path) -> list[str]:
     """The lines of a text file, split on CRLF, LF or CR (UTF-8, else Latin-1)."""
+    note_input(path)
     raw = path.read_bytes()
     try:
         text = raw.decode("utf-8-sig")
@@ -772,8 +774,7 @@ def save_ipag(path: str | Path, data: Measurements, layout: str = "multi",
         out.append("\t".join(head))
         for w, lam in enumerate(lams):
             out.append("\t".join([num(lam)] + [num(v) for v in table[w].ravel()]))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes((newline.join(out) + newline).encode("utf-8"))
+        output_file(path).write_bytes((newline.join(out) + newline).encode("utf-8"))
         return path
     # single-geometry files
     if path.exists() and (not path.is_dir() or any(p.suffix.lower() == ".txt"
@@ -794,5 +795,5 @@ def save_ipag(path: str | Path, data: Measurements, layout: str = "multi",
         names[name] = key
         out = [f"Sample data file : {name[:-6]}.txt"] + lines_comments
         out += [f"{num(data.wavelength[i])}\t{num(data.brf[i])}\t{num(err[i])}" for i in rows]
-        (path / name).write_bytes((newline.join(out) + newline).encode("utf-8"))
+        output_path(path, name).write_bytes((newline.join(out) + newline).encode("utf-8"))
     return path

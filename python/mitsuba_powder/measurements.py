@@ -26,7 +26,7 @@ Columns (any order; ``sigma`` optional):
 - ``phi``: viewing azimuth relative to the plane of incidence, degrees, in [-360, 360].
   The light sits at azimuth 0: ``wi = (sin ti, 0, cos ti)``,
   ``wo = (sin to cos phi, sin to sin phi, cos to)``. So ``phi = 0, theta_o = theta_i`` is
-  back-scattering and ``phi = 0, theta_o = -theta_i`` the mirror direction (MODEL.md).
+  back-scattering and ``phi = 0, theta_o = -theta_i`` the mirror direction (docs/model.md).
 - ``wavelength``: nm, > 0.
 - ``brf``: reflectance factor, ``pi * BRDF`` (1 for a white Lambertian), >= 0.
 - ``sigma``: 1-sigma uncertainty of ``brf``, > 0.
@@ -48,6 +48,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from .outputs import note_input, output_file
 
 REQUIRED = ("theta_i", "theta_o", "phi", "wavelength", "brf")
 OPTIONAL = ("sigma",)
@@ -153,7 +155,7 @@ class Measurements:
 
 
 def gonio_directions(theta_i, theta_o, phi) -> tuple[np.ndarray, np.ndarray]:
-    """MODEL.md's gonio convention, angles in degrees -> (wi, wo) of shape (N, 3)."""
+    """docs/model.md's gonio convention, angles in degrees -> (wi, wo) of shape (N, 3)."""
     ti, to, ph = (np.radians(np.atleast_1d(np.asarray(a, dtype=np.float64)))
                   for a in (theta_i, theta_o, phi))
     ti, to, ph = np.broadcast_arrays(ti, to, ph)
@@ -235,6 +237,7 @@ def _load_csv(path: Path) -> Measurements:
     rows: list[tuple[int, list[str]]] = []
     header: list[str] | None = None
     header_line = 0
+    note_input(path)
     with path.open(newline="", encoding="utf-8") as fh:
         for lineno, line in enumerate(fh, start=1):
             stripped = line.strip()
@@ -297,8 +300,7 @@ def save_measurements(path: str | Path, data: Measurements,
     """
     if newline not in ("\n", "\r\n", "\r"):
         raise ValueError(f"newline = {newline!r}: valid values are '\\n', '\\r\\n', '\\r'")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = output_file(path)
     names = list(REQUIRED) + (["sigma"] if data.sigma is not None else [])
     with path.open("w", newline="", encoding="utf-8") as fh:
         for c in (comments if comments is not None else data.comments):

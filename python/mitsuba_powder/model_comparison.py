@@ -11,6 +11,7 @@ from .baselines import MODELS, fit_baseline
 from .fit import fit
 from .fit_report import statistics
 from .measurements import Measurements
+from .outputs import output_path
 
 
 def compare_models(data: Measurements, free: list[str] | None = None,
@@ -54,8 +55,8 @@ def write_comparison(rows: list[dict], out_dir: str | Path) -> Path:
     """``model_comparison.json`` (every row) and ``model_comparison.md`` (a table per
     wavelength) in ``out_dir``; returns the path of the table."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "model_comparison.json").write_text(json.dumps(rows, indent=1))
+    path = output_path(out_dir, "model_comparison.md")
+    output_path(out_dir, "model_comparison.json").write_text(json.dumps(rows, indent=1))
     lines = ["| nm | model | parameters | rel. RMSE % | max rel. err. % | RMSE BRF | s |",
              "|---|---|---|---|---|---|---|"]
     for lam in sorted({r["wavelength"] for r in rows}):
@@ -65,7 +66,6 @@ def write_comparison(rows: list[dict], out_dir: str | Path) -> Path:
                          f"{r['relative_rmse_percent']:.2f} | "
                          f"{r['max_abs_relative_error_percent']:.1f} | {r['rmse_brf']:.4f} | "
                          f"{r['seconds']:.1f} |")
-    path = out_dir / "model_comparison.md"
     path.write_text("\n".join(lines) + "\n")
     return path
 

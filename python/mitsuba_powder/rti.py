@@ -51,8 +51,10 @@ from pathlib import Path
 import colour
 import numpy as np
 
+from .outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
+
 __all__ = ["Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
-           "read_image", "read_lp", "read_mask", "write_images", "write_lp"]
+           "lp_image_paths", "read_image", "read_lp", "read_mask", "write_images", "write_lp"]
 
 #: the transfer functions between file values and linear values
 ENCODINGS = ("srgb", "linear")
@@ -221,6 +223,7 @@ def _read_lp_lines(path: str | Path, min_lz: float) -> tuple[list[str], np.ndarr
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"light-position file {p} does not exist")
+    note_input(p)
     return _parse_lp_text(p.read_text(encoding="utf-8", errors="replace"), str(p), min_lz)
 
 
@@ -288,6 +291,7 @@ def read_image(path: str | Path, encoding: str = "srgb") -> tuple[np.ndarray, st
                          ".exr")
     if not p.is_file():
         raise FileNotFoundError(f"image {p} does not exist")
+    note_input(p)
     raw, depth = _bitmap(p)
     if raw.dtype == np.uint8:
         values = raw.astype(np.float32) / np.float32(255.0)
@@ -372,6 +376,13 @@ def load_capture(lp_path: str | Path, encoding: str = "srgb",
     return Capture(images, dirs, names, encoding, first[1], first[2], mask, lp)
 
 
+def lp_image_paths(lp_path: str | Path, names: Sequence[str]) -> list[Path]:
+    """Where the images named by an ``.lp`` file are (absolute names as given, relative ones
+    beside the ``.lp`` file)."""
+    lp = Path(lp_path)
+    return [Path(n) if Path(n).is_absolute() else lp.parent / n for n in names]
+
+
 def write_images(capture_like: Capture, images: np.ndarray,
                  lp_path_or_names: str | Path | Sequence[str], out_dir: str | Path,
                  jpeg_quality: int = 100) -> list[Path]:
@@ -383,17 +394,28 @@ def write_images(capture_like: Capture, images: np.ndarray,
     ``capture_like.encoding`` (:func:`encode`); integer formats clip the encoded values to
     [0, 1] and round to the nearest level.
 
+    Nothing is written outside ``out_dir`` nor over an input: names read from an ``.lp`` file
+    are reduced by :func:`mitsuba_powder.outputs.output_names` (an absolute name or one with
+    ``..`` to its base name; two lights of one base name are an error naming both lines); the
+    images the ``.lp`` file names and the ``.lp`` file itself are protected, and every target
+    is checked before the first file is written.
+
     Args:
         capture_like: anything with ``encoding``, ``bit_depth`` and ``file_format`` (a
             :class:`Capture`).
         images: linear values (K, H, W, C) or (K, H, W), C = 1 or 3.
-        lp_path_or_names: an ``.lp`` file (its names are used and the file is copied into
-            ``out_dir``, so that the output is itself a capture), or K file names.
+        lp_path_or_names: an ``.lp`` file (its names are used and an ``.lp`` file of the
+            written names is put into ``out_dir``, so that the output is itself a capture), or
+            K relative file names.
         out_dir: output folder (created).
         jpeg_quality: JPEG quality 1-100 (Mitsuba's writer; 100 by default).
 
     Returns:
         The paths written, in order.
+
+    Raises:
+        ValueError: bad shapes, suffixes or quality; :class:`mitsuba_powder.outputs.OutputError`
+            (a ValueError) for a name or target that is refused.
     """
     import mitsuba as mi
 
@@ -405,45 +427,51 @@ def write_images(capture_like: Capture, images: np.ndarray,
     if imgs.ndim != 4 or imgs.shape[3] not in (1, 3):
         raise ValueError(f"images of shape {np.shape(images)}: expected (K, H, W, C) with "
                          "C = 1 or 3")
-    lp_copy = None
-    if isinstance(lp_path_or_names, (str, Path)):
-        lp_copy = Path(lp_path_or_names)
-        names, _ = read_lp(lp_copy)
-    else:
-        names = list(lp_path_or_names)
-    if len(names) != imgs.shape[0]:
-        raise ValueError(f"{len(names)} file names for {imgs.shape[0]} images")
     if not 1 <= int(jpeg_quality) <= 100:
         raise ValueError(f"jpeg_quality = {jpeg_quality}: expected 1-100")
-    for name in names:
-        if Path(name).suffix.lower() not in _FORMATS:
-            raise ValueError(f"output name {name!r}: suffix not supported; use .png, .jpg or "
-                             ".exr")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    pixel = mi.Bitmap.PixelFormat.Y if imgs.shape[3] == 1 else mi.Bitmap.PixelFormat.RGB
-    written = []
-    with use_variant(mi.variant() or "scalar_rgb"):
-        for name, img in zip(names, imgs):
-            path = out / name
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fmt = _FORMATS[path.suffix.lower()]
-            values = encode(img, capture_like.encoding)
-            quality = -1
-            if fmt == "exr":
-                dtype = np.float16 if (capture_like.file_format == "exr"
-                                       and capture_like.bit_depth == 16) else np.float32
-                data = values.astype(dtype)
+    with guarding_inputs():
+        lp_copy = None
+        if isinstance(lp_path_or_names, (str, Path)):
+            lp_copy = Path(lp_path_or_names)
+            read_names, directions, linenos = _read_lp_lines(lp_copy, MIN_LZ_DEFAULT)
+            note_inputs(lp_image_paths(lp_copy, read_names))
+            names = output_names(read_names, [f"{lp_copy}, line {n}" for n in linenos])
+        else:
+            names = list(lp_path_or_names)
+        if len(names) != imgs.shape[0]:
+            raise ValueError(f"{len(names)} file names for {imgs.shape[0]} images")
+        for name in names:
+            if Path(name).suffix.lower() not in _FORMATS:
+                raise ValueError(f"output name {name!r}: suffix not supported; use .png, .jpg "
+                                 "or .exr")
+        out = Path(out_dir)
+        paths = [output_path(out, name, mkdir=False) for name in names]
+        lp_out = output_path(out, lp_copy.name, mkdir=False) if lp_copy is not None else None
+        pixel = mi.Bitmap.PixelFormat.Y if imgs.shape[3] == 1 else mi.Bitmap.PixelFormat.RGB
+        written = []
+        with use_variant(mi.variant() or "scalar_rgb"):
+            for path, img in zip(paths, imgs):
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fmt = _FORMATS[path.suffix.lower()]
+                values = encode(img, capture_like.encoding)
+                quality = -1
+                if fmt == "exr":
+                    dtype = np.float16 if (capture_like.file_format == "exr"
+                                           and capture_like.bit_depth == 16) else np.float32
+                    data = values.astype(dtype)
+                else:
+                    depth = 8 if fmt == "jpeg" else (16 if capture_like.bit_depth >= 16 else 8)
+                    full = 255.0 if depth == 8 else 65535.0
+                    dtype = np.uint8 if depth == 8 else np.uint16
+                    data = np.rint(np.clip(values, 0.0, 1.0) * full).astype(dtype)
+                    quality = int(jpeg_quality) if fmt == "jpeg" else -1
+                bmp = mi.Bitmap(np.ascontiguousarray(data), pixel)
+                bmp.set_srgb_gamma(capture_like.encoding == "srgb" and fmt != "exr")
+                bmp.write(str(path), quality=quality)
+                written.append(path)
+        if lp_out is not None:
+            if list(names) == list(read_names):
+                shutil.copyfile(lp_copy, lp_out)
             else:
-                depth = 8 if fmt == "jpeg" else (16 if capture_like.bit_depth >= 16 else 8)
-                full = 255.0 if depth == 8 else 65535.0
-                dtype = np.uint8 if depth == 8 else np.uint16
-                data = np.rint(np.clip(values, 0.0, 1.0) * full).astype(dtype)
-                quality = int(jpeg_quality) if fmt == "jpeg" else -1
-            bmp = mi.Bitmap(np.ascontiguousarray(data), pixel)
-            bmp.set_srgb_gamma(capture_like.encoding == "srgb" and fmt != "exr")
-            bmp.write(str(path), quality=quality)
-            written.append(path)
-    if lp_copy is not None and lp_copy.resolve() != (out / lp_copy.name).resolve():
-        shutil.copyfile(lp_copy, out / lp_copy.name)
+                write_lp(lp_out, names, directions)
     return written

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from .outputs import output_path
 from .rti import Capture, encode
 from .rti_baselines import BASELINES, fit_baseline
 
@@ -234,13 +235,16 @@ def write_comparison(comp: Comparison, out_dir: str | Path, error_images: bool =
         The path of ``compare.md``.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    md = out / "compare.md"
+    names = ["compare.md", "compare.json"] + ([f"error_{protocol}_{name}.png" for protocol, name
+                                               in comp.error_maps]
+                                              if error_images else [])
+    target = {n: output_path(out, n) for n in names}  # all checked before writing
+    md = target["compare.md"]
     md.write_text(_markdown(comp), encoding="utf-8")
     doc = {"capture": comp.capture, "rows": [asdict(r) for r in comp.rows],
            "units": "RMSE in 8-bit levels (0-255) on the capture's encoded scale; "
                     "rmse_linear_8bit: 255 x RMSE of linear values"}
-    (out / "compare.json").write_text(json.dumps(doc, indent=2), encoding="utf-8")
+    target["compare.json"].write_text(json.dumps(doc, indent=2), encoding="utf-8")
     if error_images and comp.error_maps:
         import matplotlib
 
@@ -250,6 +254,6 @@ def write_comparison(comp: Comparison, out_dir: str | Path, error_images: bool =
         vmax = max(float(np.nanpercentile(m, 99)) for m in comp.error_maps.values())
         cmap = plt.get_cmap("magma").with_extremes(bad="0.5")
         for (protocol, name), m in comp.error_maps.items():
-            plt.imsave(out / f"error_{protocol}_{name}.png", np.ma.masked_invalid(m),
+            plt.imsave(target[f"error_{protocol}_{name}.png"], np.ma.masked_invalid(m),
                        cmap=cmap, vmin=0.0, vmax=max(vmax, 1e-6))
     return md

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .outputs import guarding_inputs, note_input, note_inputs, output_path
 from .rti import Capture, read_lp, write_images
 from .rti_fit import GRAIN_MAPS, GRAIN_SETTINGS, MapsResult
 from .variants import use_variant
@@ -57,6 +58,7 @@ def _read_exr(path: Path) -> np.ndarray:
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such map (the folder must come from fit-maps)")
+    note_input(path)
     with use_variant("scalar_rgb"):
         arr = np.array(mi.Bitmap(str(path)), dtype=np.float32)
     return arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
@@ -173,21 +175,24 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
         light_names: the capture's image names, in the order of ``result.gains``.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     maps = result.as_maps()
+    files = ([f"{name}.exr" for name in result.maps]
+             + ["albedo.exr", "normal.exr", NORMAL_TANGENT, "residual.exr", "mask.exr",
+                "scene.xml", "fit.json"])
+    target = {name: output_path(out, name) for name in files}  # all checked before writing
     for name in result.maps:
-        _write_exr(out / f"{name}.exr", np.asarray(maps[name], dtype=np.float32))
+        _write_exr(target[f"{name}.exr"], np.asarray(maps[name], dtype=np.float32))
     # the albedo per channel (with a grain-size map: the grains', for reading only)
-    _write_exr(out / "albedo.exr", np.clip(np.where(result.mask[..., None], result.albedo, 0.0),
-                                           0.0, 1.0))
+    _write_exr(target["albedo.exr"], np.clip(np.where(result.mask[..., None], result.albedo,
+                                                      0.0), 0.0, 1.0))
     normals = np.asarray(maps["normal"], dtype=np.float32)
-    _write_exr(out / "normal.exr", normals)
-    _write_exr(out / NORMAL_TANGENT, 0.5 * (normals + 1.0))
-    _write_exr(out / "residual.exr", result.residual_rms)
-    _write_exr(out / "mask.exr", result.mask.astype(np.float32))
+    _write_exr(target["normal.exr"], normals)
+    _write_exr(target[NORMAL_TANGENT], 0.5 * (normals + 1.0))
+    _write_exr(target["residual.exr"], result.residual_rms)
+    _write_exr(target["mask.exr"], result.mask.astype(np.float32))
     settings = {k: v for k, v in result.settings.items()
                 if isinstance(v, (str, int, float)) and not isinstance(v, bool)}
-    (out / "scene.xml").write_text(scene_xml(result, settings))
+    target["scene.xml"].write_text(scene_xml(result, settings))
     info = {
         "kind": "mitsuba-powder maps",
         "size": {"height": int(result.mask.shape[0]), "width": int(result.mask.shape[1])},
@@ -210,7 +215,7 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
         if result.mask.any() else 0.0,
         "fit": result.fit_settings,
     }
-    path = out / "fit.json"
+    path = target["fit.json"]
     path.write_text(json.dumps(info, indent=1, default=_json_default))
     return path
 
@@ -235,6 +240,7 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
     path = folder / "fit.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file; give a folder written by fit-maps")
+    note_inputs(p for p in folder.iterdir() if p.is_file())  # the whole maps folder is input
     info = json.loads(path.read_text())
     if info.get("kind") != "mitsuba-powder maps":
         raise ValueError(f"{path}: not a fit-maps result (kind = {info.get('kind')!r})")
@@ -257,17 +263,23 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
 
 def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Path
                   ) -> list[Path]:
-    """One predicted image per line of ``lights_lp`` (same file names), with the fitted
-    capture's encoding and bit depth (PNG 8 bit sRGB when the capture is not recorded).
+    """One predicted image per line of ``lights_lp``, with the fitted capture's encoding and
+    bit depth (PNG 8 bit sRGB when the capture is not recorded), written under ``out_dir`` only.
+
+    The images are named as the ``.lp`` file names them, reduced to their base name when a name
+    is absolute or has ``..`` (dome software writes absolute paths); an ``.lp`` file of the
+    written names goes beside them. Nothing is written over the maps, the ``.lp`` file or the
+    photographs it names (:func:`mitsuba_powder.rti.write_images`).
 
     Returns:
         The paths written.
     """
-    result, info = read_maps(maps_dir)
-    names, directions = read_lp(lights_lp)
-    images = result.predict(directions)
-    cap = info.get("capture") or {"encoding": "srgb", "bit_depth": 8, "file_format": "png"}
-    like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=directions,
-                   names=list(names), encoding=cap["encoding"],
-                   file_format=cap["file_format"], bit_depth=int(cap["bit_depth"]))
-    return write_images(like, images, lights_lp, out_dir)
+    with guarding_inputs(lights_lp):
+        result, info = read_maps(maps_dir)
+        names, directions = read_lp(lights_lp)
+        images = result.predict(directions)
+        cap = info.get("capture") or {"encoding": "srgb", "bit_depth": 8, "file_format": "png"}
+        like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=directions,
+                       names=list(names), encoding=cap["encoding"],
+                       file_format=cap["file_format"], bit_depth=int(cap["bit_depth"]))
+        return write_images(like, images, lights_lp, out_dir)
