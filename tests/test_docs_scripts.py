@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -75,3 +77,25 @@ def test_rti_identifiability_script(tmp_path):
     for region in range(4):
         assert max(near[region]) < 0.2, region
     assert near[0][2] < 0.4 * dome[0][2]
+
+
+@pytest.mark.parametrize("script", ["showcase.py", "grain_colour.py", "hematite_colour.py",
+                                    "ipag_conventions.py", "rti_figure.py"])
+def test_docs_scripts_do_not_write_the_committed_docs_by_default(script):
+    """Without --out a docs script writes into a new temporary folder, and says where; the
+    committed pages and figures change only with --refresh-docs."""
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / script), "--help"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and "--refresh-docs" in proc.stdout
+    sys.path.insert(0, str(ROOT / "docs" / "scripts"))
+    try:
+        from docs_output import add_output_options, output_dir
+    finally:
+        sys.path.pop(0)
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_output_options(parser, ROOT / "docs", "pages")
+    default = output_dir(parser.parse_args([]), ROOT / "docs")
+    assert default.is_dir() and ROOT not in default.parents and not any(default.iterdir())
+    assert output_dir(parser.parse_args(["--refresh-docs"]), ROOT / "docs") == ROOT / "docs"

@@ -105,3 +105,12 @@ def test_every_documented_property_is_read(tmp_path):
     mi.load_dict({**common, "albedo": 0.5, "energy": "conserving"})
     with pytest.raises(Exception, match="not_a_property"):
         mi.load_dict({**common, "albedo": 0.5, "not_a_property": 1.0})
+
+
+def test_python_property_list_is_the_plugins():
+    """mitsuba_powder.params.POWDER_PROPERTIES (what render --set accepts) names exactly the
+    properties of the plugin's doc comment."""
+    from mitsuba_powder.params import POWDER_PROPERTIES
+
+    assert sorted(POWDER_PROPERTIES) == sorted(doc_comment_entries())
+    assert len(set(POWDER_PROPERTIES)) == len(POWDER_PROPERTIES)

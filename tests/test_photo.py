@@ -196,10 +196,32 @@ def test_clipped_photo_pixels_are_left_out(tmp_path):
     assert np.any(photo >= 0.999)
     biased, _, _ = P.compare_images(render, photo, white=1.5)
     assert abs(biased.exposure_stops + 0.4) > 0.02
-    stats, _, _ = P.compare_images(render, photo, white=1.5, saturation=0.99)
+    # more than max_clipped of the region clipped: an error naming the option, not numbers
+    # that describe what is left
+    share = float(np.mean(np.any(photo >= 0.99, axis=2)))
+    assert share > 0.1
+    with pytest.raises(ValueError, match=r"are clipped .*--max-clipped\) = 0.1"):
+        P.compare_images(render, photo, white=1.5, saturation=0.99)
+    stats, _, _ = P.compare_images(render, photo, white=1.5, saturation=0.99, max_clipped=0.9)
     assert stats.saturated_pixels > 100
+    assert stats.clipped_fraction == pytest.approx(share)
+    assert stats.region_pixels == photo.shape[0] * photo.shape[1]
     np.testing.assert_allclose(stats.gains, 1.0 / gains, rtol=0.01)
     assert stats.mean < 0.5
+    with pytest.raises(ValueError, match=r"max_clipped \(--max-clipped\) = 1.5 is out of range"):
+        P.compare_images(render, photo, saturation=0.99, max_clipped=1.5)
+
+
+def test_error_map_draws_left_out_pixels_in_grey(tmp_path):
+    """delta_e.png: pixels outside the region are neutral grey, not a colour of the scale."""
+    render = smooth_image()
+    stats, aligned, de = P.compare_images(render, render * 0.9, region=(0, 0, 8, 8))
+    P.write_report(tmp_path, stats, render, aligned, de)
+    import matplotlib.image
+
+    png = matplotlib.image.imread(tmp_path / "delta_e.png")[..., :3]
+    grey = np.all(np.abs(png - 0.6) < 0.02, axis=2)
+    assert grey.sum() > 100
 
 
 def test_negative_chart_window_is_rejected():

@@ -15,6 +15,12 @@ from mitsuba_powder.cli import main
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"
 
 
+def read_exr(path: Path) -> np.ndarray:
+    """Linear RGB of an EXR file written by the render command."""
+    use_variant("scalar_rgb")
+    return np.array(mi.Bitmap(str(path)), dtype=np.float64)[..., :3]
+
+
 def test_cli_renders_the_bundled_scene(tmp_path, capsys):
     out = tmp_path / "patch.exr"
     assert main(["render", str(SCENE), "-o", str(out), "--spp", "4",
@@ -105,28 +111,97 @@ def test_showcase_scene_renders_in_a_spectral_variant(tmp_path):
 
 
 def test_render_applies_fitted_parameters(tmp_path, capsys):
-    """--params sets the properties on the powder BSDF (the image changes as the closed form
-    says) and names those it could not set."""
+    """--params writes every property into the scene's powder BSDF before loading: the
+    differentiable ones give the image the closed form says (the scene with the same values
+    as its own defaults), the others (eta, k) reach the plugin's constructor and its
+    validation."""
     import json
 
-    params = tmp_path / "p.json"
-    params.write_text(json.dumps({"parameters": {"extinction": 3.0, "albedo": 0.5,
-                                                 "eta": 1.35}}))
     out = tmp_path / "a.exr"
-    assert main(["render", str(SCENE), "-o", str(out), "--variant", "llvm_ad_rgb", "--spp", "4",
-                 "-D", "res_x=48", "-D", "res_y=24", "--params", str(params)]) == 0
-    text = capsys.readouterr().out
-    assert "set on every powder BSDF: extinction, albedo" in text and "NOT applied" in text
-    assert "eta" in text.split("NOT applied")[1]
+    base = ["render", str(SCENE), "-o", str(out), "--variant", "llvm_ad_rgb", "--spp", "4",
+            "-D", "res_x=48", "-D", "res_y=24", "-D", "rfilter=box"]
+    params = tmp_path / "p.json"
+    params.write_text(json.dumps({"parameters": {"extinction": 3.0, "albedo": 0.5}}))
+    assert main(base + ["--params", str(params)]) == 0
+    assert "set on every powder BSDF: extinction = 3.0, albedo = 0.5" in capsys.readouterr().out
+    use_variant("llvm_ad_rgb")
+    a = mi.load_file(str(SCENE), res_x="48", res_y="24", albedo="0.5, 0.5, 0.5",
+                     extinction="3.0", rfilter="box")
+    expected = np.array(mi.render(a, spp=4))
+    np.testing.assert_allclose(read_exr(out), expected, rtol=1e-5, atol=1e-7)
+    # eta without k: the plugin's own error reaches the user, nothing is written
+    out.unlink()
+    params.write_text(json.dumps({"parameters": {"extinction": 3.0, "eta": 1.35}}))
+    assert main(base + ["--params", str(params)]) == 2
+    assert 'give both "eta" and "k"' in capsys.readouterr().err and not out.exists()
+    # with k, the powder's tau_o comes from Fresnel of eta = 1.35, not from hematite
+    params.write_text(json.dumps({"parameters": {"extinction": 3.0, "eta": 1.35, "k": 0.0}}))
+    assert main(base + ["--params", str(params)]) == 0
+    from mitsuba_powder.render import scene_with_properties
+
+    text, count, removed = scene_with_properties(SCENE, {"eta": 1.35, "k": 0.0})
+    assert count == 1 and '<float name="eta" value="1.35"' in text and removed == ["albedo"]
+    # grains given without an albedo: the scene's albedo goes, so the albedo is Mie's
+    text, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "extinction": 1.0})
+    assert removed == ["albedo"] and '<rgb name="albedo"' not in text
+    text, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "albedo": 0.5})
+    assert removed == [] and 'name="albedo" value="0.5"' in text
+
+
+def test_apply_properties_after_loading():
+    """Scenes whose powder comes from an <include>: what mi.traverse exposes is set."""
     from mitsuba_powder.render import apply_properties
 
     use_variant("llvm_ad_rgb")
     a = mi.load_file(str(SCENE), res_x="48", res_y="24", albedo="0.5, 0.5, 0.5",
                      extinction="3.0", rfilter="box")
     b = mi.load_file(str(SCENE), res_x="48", res_y="24", rfilter="box")
-    applied, missing = apply_properties(b, {"albedo": 0.5, "extinction": 3.0})
-    assert applied == ["albedo", "extinction"] and missing == []
+    applied, missing = apply_properties(b, {"albedo": 0.5, "extinction": 3.0, "eta": 1.35})
+    assert applied == ["albedo", "extinction"] and missing == ["eta"]
     with pytest.raises(ValueError, match="'extinction' = 'abc': expected a number"):
         apply_properties(b, {"extinction": "abc"})
     np.testing.assert_allclose(np.array(mi.render(b, spp=4)), np.array(mi.render(a, spp=4)),
                                rtol=1e-5, atol=1e-7)
+
+
+def test_render_with_an_included_powder_needs_allow_missing(tmp_path, capsys):
+    """A scene whose powder BSDF is in an included file: a property traverse does not expose
+    is an error unless --allow-missing, which names it."""
+    (tmp_path / "powder.xml").write_text(
+        '<scene version="3.0.0"><bsdf type="powder" id="p"/></scene>\n')
+    (tmp_path / "main.xml").write_text("""<scene version="3.0.0">
+  <include filename="powder.xml"/>
+  <integrator type="direct"/>
+  <sensor type="orthographic"><film type="hdrfilm"><integer name="width" value="4"/>
+    <integer name="height" value="4"/></film></sensor>
+  <shape type="rectangle"><ref id="p"/></shape>
+  <emitter type="directional"><vector name="direction" value="0, 0, -1"/></emitter>
+</scene>
+""")
+    out = tmp_path / "i.exr"
+    args = ["render", str(tmp_path / "main.xml"), "-o", str(out), "--spp", "1", "--set",
+            "extinction=2", "--set", "lobes=single"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "lobes cannot be set" in err and "--allow-missing" in err and not out.exists()
+    assert main(args + ["--allow-missing"]) == 0
+    text = capsys.readouterr().out
+    assert "set on every powder BSDF: extinction = 2.0" in text
+    assert "lobes" in text.split("NOT applied")[1]
+
+
+def test_render_rejects_a_name_that_is_not_a_property(tmp_path, capsys):
+    """A typo in --set is an error (exit 2) that names the property meant; nothing is
+    written."""
+    out = tmp_path / "typo.exr"
+    assert main(["render", str(SCENE), "-o", str(out), "--set", "radiu=0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "'radiu' is not a property of the powder plugin" in err and "'radius'" in err
+    assert not out.exists()
+
+
+def test_render_reports_the_scenes_sample_count(tmp_path, capsys):
+    out = tmp_path / "s.exr"
+    assert main(["render", str(SCENE), "-o", str(out), "-D", "res_x=16", "-D", "res_y=8",
+                 "-D", "spp=3"]) == 0
+    assert "16x8, 3 spp (the scene's)" in capsys.readouterr().out

@@ -6,7 +6,7 @@ lowest-elevation sixth (the grazing protocol of compare-maps), and draws: the fi
 each model predicts it, and each model's per-pixel error over the held-out lights (8-bit
 levels on the capture's encoded scale).
 
-    python docs/scripts/rti_figure.py                      # SYNTHETIC capture -> docs/figures
+    python docs/scripts/rti_figure.py --refresh-docs       # SYNTHETIC capture -> docs/figures
     python docs/scripts/rti_figure.py --capture /path/item7/dirs.lp --encoding linear \\
         --out /tmp/item7_figure                             # a real capture (not committed)
 
@@ -26,6 +26,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from docs_output import add_output_options, output_dir  # noqa: E402
 
 from mitsuba_powder.rti import Capture, encode, load_capture  # noqa: E402
 from mitsuba_powder.rti_baselines import fit_baseline  # noqa: E402
@@ -47,8 +48,9 @@ def main() -> None:
     parser.add_argument("--capture", default=None, help=".lp file (default: SYNTHETIC)")
     parser.add_argument("--encoding", choices=("srgb", "linear"), default="linear")
     parser.add_argument("--size", type=int, default=96, help="SYNTHETIC capture size (px)")
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "figures")
+    add_output_options(parser, ROOT / "docs" / "figures", "rti figure and its JSON")
     args = parser.parse_args()
+    args.out = output_dir(args, ROOT / "docs" / "figures")
     cap = synthetic(args.size) if args.capture is None else \
         load_capture(args.capture, encoding=args.encoding)
     label = "SYNTHETIC" if args.capture is None else Path(args.capture).parent.name

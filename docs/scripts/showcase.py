@@ -3,8 +3,11 @@ isolated Mie spheres of the Table 2 radii (scenes/showcase.xml) above, a grain m
 argued from the paper's description (scenes/showcase_grains.xml) below.
 
     python docs/scripts/showcase.py [--spp 256] [--variant llvm_ad_spectral] [-D NAME=VALUE]
+                                    [--out DIR | --refresh-docs]
 
-Writes docs/figures/showcase.png (labelled) and docs/figures/showcase.json (time, variant).
+Writes showcase.png (labelled) and showcase.json (time, variant) into a new temporary folder,
+the folder given with ``--out``, or, with ``--refresh-docs``, docs/figures (the committed
+figure).
 ``-D`` sets a scene parameter of both scenes (e.g. ``-D fraction2=0.3``, ``-D
 agglomerate_fill=0.5``; the assumptions the paper does not fix are such parameters).
 """
@@ -19,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from docs_output import add_output_options, output_dir
 
 from mitsuba_powder.render import render_scene
 
@@ -58,7 +62,7 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--variant", default="llvm_ad_spectral")
     parser.add_argument("--res", default="960x300", help="WIDTHxHEIGHT")
-    parser.add_argument("--out", default=str(ROOT / "docs" / "figures"))
+    add_output_options(parser, ROOT / "docs" / "figures", "showcase.png and showcase.json")
     parser.add_argument("-D", dest="defines", action="append", default=[],
                         metavar="NAME=VALUE", help="a scene parameter of both scenes")
     args = parser.parse_args()
@@ -81,8 +85,7 @@ def main() -> None:
     if unknown:
         parser.error(f"-D {unknown}: not a parameter of the showcase scenes; they declare "
                      f"{', '.join(sorted(declared))}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(args, ROOT / "docs" / "figures")
     import matplotlib
 
     matplotlib.use("Agg")

@@ -5,6 +5,37 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from .outputs import note_input
+
+#: Every property the ``powder`` plugin's constructor reads (its doc comment's parameter table;
+#: tests/test_params_doc.py checks that the two lists agree)
+POWDER_PROPERTIES = (
+    "amplitude_volume", "g", "extinction", "radius", "radius2", "fraction2", "grains",
+    "agglomerate_radius", "agglomerate_fill", "mixing", "material", "eta", "k", "albedo",
+    "tau_o", "thickness", "amplitude_surface", "correlation_length", "specular", "sigma",
+    "lobes", "sampling", "energy", "wavelength", "rgb_wavelengths",
+)
+
+
+def check_property_names(names, what: str = "property") -> None:
+    """Raise if a name is not a property of the ``powder`` plugin.
+
+    Args:
+        names: property names (e.g. the keys of ``--params`` or ``--set``).
+        what: how the names were given, for the message (e.g. ``--set``).
+
+    Raises:
+        ValueError: naming the unknown property, the closest valid names and every valid one.
+    """
+    import difflib
+
+    for name in names:
+        if name not in POWDER_PROPERTIES:
+            close = difflib.get_close_matches(name, POWDER_PROPERTIES, n=3)
+            hint = f"did you mean {', '.join(repr(c) for c in close)}? " if close else ""
+            raise ValueError(f"{what} {name!r} is not a property of the powder plugin; {hint}"
+                             f"valid properties are {', '.join(POWDER_PROPERTIES)}")
+
 
 def load_properties(path: str | Path | None, wavelength: float | None = None,
                     overrides: dict | None = None) -> dict:
@@ -25,6 +56,7 @@ def load_properties(path: str | Path | None, wavelength: float | None = None,
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"parameter file {path} does not exist")
+        note_input(path)
         try:
             spec = json.loads(path.read_text())
         except json.JSONDecodeError as exc:

@@ -24,6 +24,8 @@ from pathlib import Path
 import colour
 import numpy as np
 
+from .outputs import note_input, output_file, output_path
+
 ENCODINGS = ("auto", "linear", "srgb")
 ALIGNMENTS = ("none", "exposure", "white-balance")
 CHART = "ColorChecker24 - After November 2014"
@@ -47,6 +49,7 @@ def read_image(path: str | Path, encoding: str = "auto") -> np.ndarray:
         raise ValueError(f"encoding = {encoding!r} is not valid; choose one of {ENCODINGS}")
     if not path.is_file():
         raise FileNotFoundError(f"image {path} does not exist")
+    note_input(path)
     suffix = path.suffix.lower()
     if suffix == ".exr":
         rgb = _read_exr(path)
@@ -104,8 +107,7 @@ def write_exr(path: str | Path, rgb: np.ndarray) -> Path:
     """Write linear RGB (H, W, 3) as a float32 OpenEXR file."""
     import OpenEXR
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = output_file(path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, {"RGB": np.ascontiguousarray(rgb, dtype=np.float32)}) as f:
         f.write(str(path))
@@ -224,6 +226,8 @@ class Comparison:
     white_balance: list[float]
     white: float
     saturated_pixels: int = 0
+    region_pixels: int = 0
+    clipped_fraction: float = 0.0
     chart_matrix: list[list[float]] | None = None
     chart_delta_e_mean: float | None = None
     chart_delta_e_max: float | None = None
@@ -231,7 +235,7 @@ class Comparison:
 
 def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart_half: int = 3,
                    align_mode: str = "white-balance", region=None, white: float | None = None,
-                   saturation: float | None = None
+                   saturation: float | None = None, max_clipped: float = 0.1
                    ) -> tuple[Comparison, np.ndarray, np.ndarray]:
     """Compare linear RGB images of the same size.
 
@@ -246,6 +250,10 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
         saturation: photo pixels with a channel at or above this linear value (before
             calibration) are clipped and left out of the alignment and the statistics (e.g.
             0.99 for 8/16-bit photos); ``None`` keeps every pixel.
+        max_clipped: the largest fraction (0-1) of the region's pixels that may be clipped;
+            more is an error, since the statistics would then describe what is left (often
+            the background) rather than the sample (lower the photo's exposure, or give a
+            region). 1 never stops.
 
     Returns:
         (:class:`Comparison`, the aligned photo, the CIEDE2000 map (NaN outside the region)).
@@ -264,7 +272,11 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
             raise ValueError(f"region = {tuple(region)} is out of range; valid: 0 <= x0 < x1 <= "
                              f"{w}, 0 <= y0 < y1 <= {h}")
         mask[y0:y1, x0:x1] = True
+    if not 0.0 <= max_clipped <= 1.0:
+        raise ValueError(f"max_clipped (--max-clipped) = {max_clipped} is out of range; valid "
+                         "range is [0, 1]")
     mask &= np.all(np.isfinite(render), axis=2) & np.all(np.isfinite(photo), axis=2)
+    region_pixels = int(mask.sum())
     saturated = 0
     if saturation is not None:
         clipped = np.any(photo >= saturation, axis=2) & mask
@@ -272,6 +284,13 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
         mask &= ~clipped
         if not mask.any():
             raise ValueError(f"saturation = {saturation}: every compared photo pixel is clipped")
+        if saturated > max_clipped * region_pixels:
+            raise ValueError(
+                f"{saturated} of the {region_pixels} compared photo pixels "
+                f"({100 * saturated / region_pixels:.1f} %) are clipped (a channel >= "
+                f"{saturation:g}), more than max_clipped (--max-clipped) = {max_clipped:g}: "
+                "the comparison would leave out the brightest parts of the sample. Take the "
+                "photo at a lower exposure, or give --region, or raise --max-clipped")
     matrix = chart_de = None
     if corners is not None:
         photo, matrix, chart_de = calibrate_with_chart(photo, corners, chart_half)
@@ -289,7 +308,8 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
         p95=float(np.percentile(vals, 95)), max=float(vals.max()), pixels=int(vals.size),
         gains=[float(g) for g in gains], exposure_stops=float(np.log2(gains[1])),
         white_balance=[float(gains[0] / gains[1]), 1.0, float(gains[2] / gains[1])],
-        white=float(white), saturated_pixels=saturated,
+        white=float(white), saturated_pixels=saturated, region_pixels=region_pixels,
+        clipped_fraction=saturated / max(region_pixels, 1),
         chart_matrix=None if matrix is None else np.asarray(matrix).tolist(),
         chart_delta_e_mean=None if chart_de is None else float(np.mean(chart_de)),
         chart_delta_e_max=None if chart_de is None else float(np.max(chart_de)))
@@ -306,18 +326,28 @@ def write_report(out_dir: str | Path, stats: Comparison, render: np.ndarray,
     import matplotlib.pyplot as plt
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "photo_comparison.json"
+    target = {n: output_path(out, n) for n in ("photo_comparison.json", "delta_e.png",
+                                                "side_by_side.png")}
+    path = target["photo_comparison.json"]
     path.write_text(json.dumps(asdict(stats), indent=1))
     show = lambda x: np.clip(colour.cctf_encoding(np.clip(x / stats.white, 0, 1),  # noqa: E731
                                                   function="sRGB"), 0, 1)
+    from matplotlib.patches import Patch
+
     vmax = max(5.0, float(np.nanpercentile(de, 99)))
+    # pixels left out (outside the region, clipped, not finite) in a neutral grey, not at an
+    # end of the colour scale
+    cmap = plt.get_cmap("viridis").with_extremes(bad="0.6")
+    left_out = Patch(facecolor="0.6", edgecolor="0.3",
+                     label=f"left out ({stats.saturated_pixels} clipped; outside the region)")
     fig, ax = plt.subplots(figsize=(6, 4.5))
-    im = ax.imshow(de, cmap="magma", vmin=0, vmax=vmax)
+    im = ax.imshow(np.ma.masked_invalid(de), cmap=cmap, vmin=0, vmax=vmax)
     fig.colorbar(im, ax=ax, label="CIEDE2000")
     ax.set_title(f"Delta E 2000: mean {stats.mean:.2f}, p95 {stats.p95:.2f}")
+    ax.legend(handles=[left_out], loc="upper center", bbox_to_anchor=(0.5, -0.02),
+              fontsize=8, frameon=False)
     ax.axis("off")
-    fig.savefig(out / "delta_e.png", dpi=120, bbox_inches="tight")
+    fig.savefig(target["delta_e.png"], dpi=120, bbox_inches="tight")
     plt.close(fig)
     fig, axes = plt.subplots(1, 3, figsize=(13, 4))
     for a, img, title in zip(axes[:2], (render, photo), ("render", "photo (aligned)"),
@@ -325,10 +355,10 @@ def write_report(out_dir: str | Path, stats: Comparison, render: np.ndarray,
         a.imshow(show(img))
         a.set_title(title)
         a.axis("off")
-    im = axes[2].imshow(de, cmap="magma", vmin=0, vmax=vmax)
-    axes[2].set_title("CIEDE2000")
+    im = axes[2].imshow(np.ma.masked_invalid(de), cmap=cmap, vmin=0, vmax=vmax)
+    axes[2].set_title("CIEDE2000 (grey: left out)")
     axes[2].axis("off")
     fig.colorbar(im, ax=axes[2], fraction=0.046)
-    fig.savefig(out / "side_by_side.png", dpi=110, bbox_inches="tight")
+    fig.savefig(target["side_by_side.png"], dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path

@@ -9,6 +9,8 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
+from .outputs import guarding_inputs, output_file
+from .params import check_property_names
 from .variants import check_variant, use_variant
 
 
@@ -19,9 +21,13 @@ class RenderResult:
     Attributes:
         output: path of the written image.
         width, height: image size in pixels.
-        spp: samples per pixel used (``None`` when the scene's own count was used).
+        spp: samples per pixel used (the scene's own count when none was asked for).
         variant: Mitsuba variant.
         seconds: wall-clock time of loading and rendering, in seconds.
+        applied: the powder properties set (``properties`` of :func:`render_scene`).
+        not_applied: those that could not be set (with ``allow_missing``).
+        removed: scene properties removed because they would override the given ones (see
+            :func:`scene_with_properties`).
     """
 
     output: Path
@@ -32,6 +38,7 @@ class RenderResult:
     seconds: float
     applied: tuple[str, ...] = ()
     not_applied: tuple[str, ...] = ()
+    removed: tuple[str, ...] = ()
 
 
 def apply_properties(scene, properties: dict) -> tuple[list[str], list[str]]:
@@ -73,6 +80,114 @@ def apply_properties(scene, properties: dict) -> tuple[list[str], list[str]]:
     return applied, missing
 
 
+#: Property names given as strings in a scene description (the others are numbers)
+_STRING_PROPERTIES = ("grains", "mixing", "material", "specular", "lobes", "sampling", "energy")
+
+
+def _xml_property(name: str, value):
+    """The scene-description element of one powder property: ``string`` for the named
+    choices and ``rgb_wavelengths``, ``rgb`` for three numbers, ``float`` for one."""
+    import xml.etree.ElementTree as ET
+
+    if name in _STRING_PROPERTIES:
+        return ET.Element("string", name=name, value=str(value))
+    values = list(value) if isinstance(value, (list, tuple)) else [value]
+    try:
+        if any(isinstance(v, (str, bool)) for v in values):
+            raise TypeError
+        numbers = [float(v) for v in values]
+    except (TypeError, ValueError):
+        raise ValueError(f"powder property {name!r} = {value!r}: expected a number (or "
+                         "three: R, G, B)") from None
+    if len(numbers) == 3:
+        text = ", ".join(repr(v) for v in numbers)
+        return ET.Element("string" if name == "rgb_wavelengths" else "rgb", name=name,
+                          value=text)
+    if len(numbers) != 1:
+        raise ValueError(f"powder property {name!r} = {value!r}: expected one number or three "
+                         "(R, G, B)")
+    return ET.Element("float", name=name, value=repr(numbers[0]))
+
+
+#: A property that overrides others in the plugin, and what it overrides: given in the scene
+#: but not in the properties, while the properties give what it overrides, it is removed (so
+#: that ``radius`` from a fit gives the albedo from the grains, not the scene's albedo)
+_OVERRIDES = {
+    "albedo": ("radius", "radius2", "fraction2", "grains", "agglomerate_radius",
+               "agglomerate_fill", "mixing", "material", "eta", "k"),
+    "tau_o": ("material", "eta", "k"),
+    "eta": ("material",),
+    "k": ("material",),
+}
+
+
+def scene_with_properties(scene: str | Path, properties: dict
+                          ) -> tuple[str, int, list[str]]:
+    """The scene description of ``scene`` with ``properties`` written into every
+    ``<bsdf type="powder">`` element of the file (replacing any element of the same name).
+
+    Every property then reaches the plugin's constructor, the non-differentiable ones (``eta``,
+    ``k``, ``material``, ``lobes``...) included, and is validated there. A scene property that
+    would override the given ones is removed: the scene's ``albedo`` when the properties give
+    grains (``radius``...) but no albedo, its ``tau_o`` when they give ``eta``/``k`` or a
+    ``material`` but no ``tau_o``, its ``eta``/``k`` when they give a ``material``.
+
+    Returns:
+        (the XML text, the number of powder BSDFs changed (0 when the file defines none, e.g.
+        when they come from an ``<include>``), the scene properties removed).
+    """
+    import xml.etree.ElementTree as ET
+
+    tree = ET.parse(scene)
+    powders = [e for e in tree.getroot().iter("bsdf") if e.get("type") == "powder"]
+    elements = {name: _xml_property(name, value) for name, value in properties.items()}
+    drop = {name for name, inputs in _OVERRIDES.items()
+            if name not in properties and any(k in properties for k in inputs)}
+    removed: list[str] = []
+    for bsdf in powders:
+        for child in list(bsdf):
+            name = child.get("name")
+            if name in elements or name in drop:
+                bsdf.remove(child)
+                if name in drop and name not in removed:
+                    removed.append(name)
+        for element in elements.values():
+            bsdf.append(element)
+    return ET.tostring(tree.getroot(), encoding="unicode"), len(powders), removed
+
+
+def _load_with_properties(scene: Path, properties: dict, defines: dict) -> tuple:
+    """(loaded scene, names applied in the scene description, names left for traverse,
+    scene properties removed)."""
+    text, count, removed = scene_with_properties(scene, properties)
+    if count == 0:
+        return mi.load_file(str(scene), **defines), [], list(properties), []
+    resolver = mi.file_resolver()
+    saved = mi.FileResolver(resolver)
+    resolver.prepend(str(scene.resolve().parent))  # relative file names, as load_file does
+    try:
+        loaded = mi.load_string(text, **defines)
+    finally:
+        mi.set_file_resolver(saved)
+    return loaded, list(properties), [], removed
+
+
+def scene_files(scene: str | Path) -> list[Path]:
+    """The files a scene XML names (``filename`` properties and ``<include>``), resolved
+    beside the scene file; a file that does not parse names none (Mitsuba reports it)."""
+    import xml.etree.ElementTree as ET
+
+    scene = Path(scene)
+    try:
+        root = ET.parse(scene).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    names = [e.get("value") for e in root.iter() if e.get("name") == "filename"]
+    names += [e.get("filename") for e in root.iter("include")]
+    return [Path(n) if Path(n).is_absolute() else scene.parent / n
+            for n in names if n and "$" not in n]
+
+
 def render_scene(
     scene: str | Path,
     output: str | Path,
@@ -80,6 +195,7 @@ def render_scene(
     spp: int | None = None,
     defines: dict[str, str] | None = None,
     properties: dict | None = None,
+    allow_missing: bool = False,
 ) -> RenderResult:
     """Render ``scene`` in ``variant`` and write ``output`` (.exr: linear; .png: sRGB 8 bit).
 
@@ -92,12 +208,20 @@ def render_scene(
         variant: Mitsuba variant, e.g. ``scalar_rgb``, ``llvm_ad_rgb``, ``scalar_spectral``.
         spp: samples per pixel, overriding the scene's sampler.
         defines: values for the scene's ``<default name=...>`` parameters.
-        properties: powder properties set on every powder BSDF after loading (see
-            :func:`apply_properties`), e.g. from a ``fit.json``.
+        properties: powder properties, e.g. from a ``fit.json``, written into every
+            ``<bsdf type="powder">`` of the scene file before it is loaded
+            (:func:`scene_with_properties`: every property, ``eta`` or ``lobes`` too). When
+            the file defines no powder BSDF itself (they come from an ``<include>``), they are
+            set after loading where ``mi.traverse`` exposes them (:func:`apply_properties`).
+        allow_missing: in that second case, render even when some of ``properties`` cannot be
+            set (they are listed in :attr:`RenderResult.not_applied`); by default that is an
+            error, since the image would show another powder than the one asked for.
 
     Raises:
         FileNotFoundError: the scene file does not exist.
-        ValueError: unknown variant, unsupported output extension or bad ``spp``.
+        ValueError: unknown variant, unsupported output extension or bad ``spp``; a name in
+            ``properties`` that is not a powder property; a property the scene does not expose
+            (unless ``allow_missing``).
         RuntimeError: the variant's backend (CUDA, LLVM) cannot run here.
     """
     scene = Path(scene)
@@ -109,17 +233,36 @@ def render_scene(
         raise ValueError(f"output {output}: extension must be .exr, .png, .jpg, .hdr or .pfm")
     if spp is not None and spp < 1:
         raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
+    if properties:
+        check_property_names(properties)
 
-    with use_variant(variant):
+    with guarding_inputs(scene, *scene_files(scene)), use_variant(variant):
+        output = output_file(output, "output")
         start = time.perf_counter()
-        loaded = mi.load_file(str(scene), **(defines or {}))
-        applied, missing = apply_properties(loaded, properties) if properties else ([], [])
+        if properties:
+            loaded, applied, rest, removed = _load_with_properties(scene, properties,
+                                                                   defines or {})
+            if rest:  # no powder BSDF in the file itself: set what traverse exposes
+                more, missing = apply_properties(loaded, {k: properties[k] for k in rest})
+                applied += more
+            else:
+                missing = []
+        else:
+            loaded = mi.load_file(str(scene), **(defines or {}))
+            applied, missing, removed = [], [], []
+        if missing and not allow_missing:
+            raise ValueError(
+                f"powder properties {', '.join(missing)} cannot be set on {scene}: the scene "
+                "does not expose them after loading (only differentiable properties that the "
+                "scene gives can change; see mitsuba_powder.render.apply_properties). Set them "
+                "in the scene file, or allow rendering without them (allow_missing=True, "
+                "--allow-missing)")
         image = mi.render(loaded, spp=spp or 0)
+        used_spp = spp or int(loaded.sensors()[0].sampler().sample_count())
         dr.eval(image)  # kernels run asynchronously: wait for them before stopping the clock
         dr.sync_thread()
         seconds = time.perf_counter() - start
-        output.parent.mkdir(parents=True, exist_ok=True)
         mi.util.write_bitmap(str(output), image, write_async=False)
         height, width = image.shape[0], image.shape[1]
-    return RenderResult(output, width, height, spp, variant, seconds, tuple(applied),
-                        tuple(missing))
+    return RenderResult(output, width, height, used_spp, variant, seconds, tuple(applied),
+                        tuple(missing), tuple(removed))
