@@ -2,7 +2,7 @@
 
 This is not the product (the C++ plugin is the one source of truth for the model); it exists
 so that ``bench_python_bsdf.py`` can measure what writing the model in Python would cost. It
-implements MODEL.md's L1, L2, C and the Harvey-Shack surface term for a constant albedo, a
+implements docs/model.md's L1, L2, C and the Harvey-Shack surface term for a constant albedo, a
 given ``tau_o`` and an infinitely thick layer, with cosine-weighted sampling: the same values
 and the same sample distribution as ``{'type': 'powder', ..., 'sampling': 'cosine'}`` (the
 benchmark checks the values agree).

@@ -1,10 +1,10 @@
-"""Independent double-precision reference for the grain models of MODEL.md ("Grain models
+"""Independent double-precision reference for the grain models of docs/model.md ("Grain models
 (property `grains`)"): effective-medium mixing (Bruggeman, Maxwell Garnett), the Mie albedo of
 an agglomerate, Hapke's equivalent-slab albedo (one or two populations) and the crystallite size
-parameter. Written from MODEL.md only, with NumPy and miepython (which uses ``n - ik``).
+parameter. Written from docs/model.md only, with NumPy and miepython (which uses ``n - ik``).
 
 Units: wavelengths in nanometres (``wl_nm``) as in Mitsuba, every length in micrometres.
-Complex indices follow MODEL.md's ``n + ik`` convention (``k >= 0`` absorbs).
+Complex indices follow docs/model.md's ``n + ik`` convention (``k >= 0`` absorbs).
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def sphere_albedo(index: complex, radius_um: float, wl_nm: float) -> float:
 
 def slab_albedo(index: complex, diameter_um: float, wl_nm: float) -> float:
     """Hapke's equivalent-slab albedo (dimensionless) of a grain of size ``diameter_um`` (um,
-    D = 2 r) and index ``n + ik`` (n > 1) at the wavelength ``wl_nm`` (nm), as MODEL.md:
+    D = 2 r) and index ``n + ik`` (n > 1) at the wavelength ``wl_nm`` (nm), as docs/model.md:
 
     ``rho = S_e + (1 - S_e) (1 - S_i) Theta / (1 - S_i Theta)``, ``Theta = exp(-alpha <D>)``,
     ``alpha = 4 pi k / lam``, ``<D> = (2/3) [n^2 - (1/n) (n^2 - 1)^(3/2)] D``.
@@ -106,7 +106,7 @@ def slab_albedo(index: complex, diameter_um: float, wl_nm: float) -> float:
 
 def slab_albedo_two(index: complex, r1: float, r2: float, f2: float, wl_nm: float) -> float:
     """Equivalent-slab albedo (dimensionless) of two populations of radii ``r1``, ``r2`` (um,
-    D_j = 2 r_j) with volume fraction ``f2`` of the second, at ``wl_nm`` (nm): MODEL.md's
+    D_j = 2 r_j) with volume fraction ``f2`` of the second, at ``wl_nm`` (nm): docs/model.md's
     mixing formula with ``Q_ext = 1, Q_sca = rho_j`` and weights ``f_j / r_j``."""
     w1, w2 = (1.0 - f2) / r1, f2 / r2
     rho1 = slab_albedo(index, 2.0 * r1, wl_nm)

@@ -1,7 +1,7 @@
-"""Independent NumPy (float64) implementation of the powder BRDF of ``MODEL.md``.
+"""Independent NumPy (float64) implementation of the powder BRDF of ``docs/model.md``.
 
 Test-only code: the product computes the model in C++ (``src/bsdfs/powder.cpp``). This file
-follows MODEL.md's formulas literally (Eq. 9a, the corrected 9b, 9c/10, 21-22 and 20), e.g.
+follows docs/model.md's formulas literally (Eq. 9a, the corrected 9b, 9c/10, 21-22 and 20), e.g.
 the coherent term with ``v = (1/mu_i + 1/mu_o) / 2`` and ``np.expm1``, so that it shares no
 algebraic rewriting with the plugin.
 
@@ -19,7 +19,7 @@ LOBES = ("single", "multiple", "coherent", "surface")
 
 @dataclass
 class Params:
-    """Parameters of MODEL.md's table (plugin property names)."""
+    """Parameters of docs/model.md's table (plugin property names)."""
 
     amplitude_volume: float = 1.0
     g: float = 0.0
@@ -111,7 +111,7 @@ def brdf_terms(wi: np.ndarray, wo: np.ndarray, rho: np.ndarray, lam_nm: np.ndarr
     L1 = rho * hg(cos_theta, p.g) / (mu_i + mu_o) * bracket
     out["single"] = scale * L1
 
-    # Eq. 9b (corrected, MODEL.md)
+    # Eq. 9b (corrected, docs/model.md)
     c0 = np.sqrt(3.0 * (1.0 - rho) * (1.0 - rho * p.g))
     L2 = 3.0 * rho**2 * (s_func(c0, p.tau_o) + mu_i * mu_o / (mu_i + mu_o)) / (
         (1.0 + c0 * mu_i) * (1.0 + c0 * mu_o))
@@ -148,13 +148,13 @@ def brdf_terms(wi: np.ndarray, wo: np.ndarray, rho: np.ndarray, lam_nm: np.ndarr
 
 def brdf(wi: np.ndarray, wo: np.ndarray, rho: np.ndarray, lam_nm: np.ndarray,
          p: Params) -> np.ndarray:
-    """The BRDF of MODEL.md (1/sr) summed over ``p.lobes``; shape (N, C)."""
+    """The BRDF of docs/model.md (1/sr) summed over ``p.lobes``; shape (N, C)."""
     terms = brdf_terms(wi, wo, rho, lam_nm, p)
     return sum(terms[name] for name in p.lobes)
 
 
 def gonio_directions(theta_i_deg, theta_o_deg, phi_deg) -> tuple[np.ndarray, np.ndarray]:
-    """MODEL.md's gonio convention: wi in the xz plane, signed theta_o, azimuth phi."""
+    """docs/model.md's gonio convention: wi in the xz plane, signed theta_o, azimuth phi."""
     ti = np.radians(np.atleast_1d(theta_i_deg)).astype(np.float64)
     to = np.radians(np.atleast_1d(theta_o_deg)).astype(np.float64)
     ph = np.radians(np.atleast_1d(phi_deg)).astype(np.float64)
@@ -162,3 +162,26 @@ def gonio_directions(theta_i_deg, theta_o_deg, phi_deg) -> tuple[np.ndarray, np.
     wi = np.stack([np.sin(ti), np.zeros_like(ti), np.cos(ti)], axis=1)
     wo = np.stack([np.sin(to) * np.cos(ph), np.sin(to) * np.sin(ph), np.cos(to)], axis=1)
     return wi, wo
+
+
+def fresnel_unpolarized(c: np.ndarray, m: complex | np.ndarray) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of a smooth interface to a medium of complex index
+    ``m = eta + i k`` at the cosine ``c`` (docs/model.md, "Surface reflectance factor"), in
+    complex float64 arithmetic (the plugin expands it into real arithmetic)."""
+    m = np.asarray(m, dtype=np.complex128)
+    c = np.asarray(c, dtype=np.float64)
+    r = np.sqrt(m * m - 1.0 + c * c + 0j)
+    rs = (c - r) / (c + r)
+    rp = (m * m * c - r) / (m * m * c + r)
+    return 0.5 * (np.abs(rs) ** 2 + np.abs(rp) ** 2)
+
+
+def surface_fresnel_factor(wi: np.ndarray, wo: np.ndarray, m: complex | np.ndarray
+                           ) -> np.ndarray:
+    """F(wi . h) / F(1), h the half vector of ``wi`` and ``wo`` (N, 3): the factor of the
+    surface term with ``surface_fresnel = fresnel``; (N, 1), or (N, C) for ``m`` of shape
+    (N, C) or (C,)."""
+    h = wi + wo
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    c = np.clip(np.sum(wi * h, axis=1, keepdims=True), 0.0, 1.0)
+    return fresnel_unpolarized(c, m) / fresnel_unpolarized(1.0, m)

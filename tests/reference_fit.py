@@ -1,13 +1,13 @@
-"""Independent multi-start least-squares fit of MODEL.md's BRDF at one wavelength (test-only).
+"""Independent multi-start least-squares fit of docs/model.md's BRDF at one wavelength (test-only).
 
 The reference the project's fitter (``mitsuba_powder.fit``) is judged against (issue 10): it
-shares no code with the product. The model is :func:`reference.brdf` (NumPy float64, MODEL.md's
+shares no code with the product. The model is :func:`reference.brdf` (NumPy float64, docs/model.md's
 equations written independently of the C++ plugin), ``tau_o`` comes from this module's own
-Fresnel quadrature (:func:`tau_o_fresnel`, MODEL.md "Extrapolation ratio tau_o"), and the
+Fresnel quadrature (:func:`tau_o_fresnel`, docs/model.md "Extrapolation ratio tau_o"), and the
 optimiser is ``scipy.optimize.least_squares`` (trust-region reflective, finite-difference
 Jacobian) polishing every point of a scrambled Sobol design over the (log-)bounds.
 
-Free parameters (MODEL.md names): ``amplitude_volume`` A_v, ``g``, ``extinction`` kappa (1/um),
+Free parameters (docs/model.md names): ``amplitude_volume`` A_v, ``g``, ``extinction`` kappa (1/um),
 ``albedo`` rho, ``amplitude_surface`` A_s' (um^2), ``correlation_length`` l_c (um); Harvey-Shack
 specular lobe, infinite thickness. Bounds are those of ``mitsuba_powder.fit.FITTABLE`` (copied,
 not imported). Loss: plain sum of squares of BRF residuals, ``sum((BRF_model - BRF)^2)`` with
@@ -70,7 +70,7 @@ def fresnel_inside(cos_theta: np.ndarray, n: float) -> np.ndarray:
 
 
 def fresnel_moments(n: float) -> tuple[float, float]:
-    """C_1 and C_2 of MODEL.md: ``C_j = int_0^{pi/2} R(theta) cos^j(theta) sin(theta) dtheta``,
+    """C_1 and C_2 of docs/model.md: ``C_j = int_0^{pi/2} R(theta) cos^j(theta) sin(theta) dtheta``,
     integrated with adaptive quadrature split at the critical angle (where R has a kink);
     beyond it R = 1 and the integral is closed-form, ``cos^{j+1}(theta_c) / (j + 1)``."""
     if not (math.isfinite(n) and n >= 1.0):
@@ -86,7 +86,7 @@ def fresnel_moments(n: float) -> tuple[float, float]:
 
 
 def rbar_fresnel(n: float) -> float:
-    """Rbar = (3 C2 + 2 C1) / (3 C2 - 2 C1 + 2) (MODEL.md Eq. 11, Zhu, Pine and Weitz 1991)."""
+    """Rbar = (3 C2 + 2 C1) / (3 C2 - 2 C1 + 2) (docs/model.md Eq. 11, Zhu, Pine and Weitz 1991)."""
     c1, c2 = fresnel_moments(n)
     return (3.0 * c2 + 2.0 * c1) / (3.0 * c2 - 2.0 * c1 + 2.0)
 
@@ -100,7 +100,7 @@ def tau_o_fresnel(n: float) -> float:
 
 def model_brf(theta_i, theta_o, phi, wavelength_nm: float, values: dict[str, float],
               tau_o: float) -> np.ndarray:
-    """BRF = pi * BRDF of :func:`reference.brdf` at gonio geometries (MODEL.md convention).
+    """BRF = pi * BRDF of :func:`reference.brdf` at gonio geometries (docs/model.md convention).
 
     Args:
         theta_i, theta_o, phi: incidence, signed viewing angle and azimuth (degrees), (N,).

@@ -330,7 +330,7 @@ def test_energy_conserving_takes_one_value_per_parameter():
 
 def surface_exponent(wi: np.ndarray, wo: np.ndarray, lam_nm: np.ndarray, p) -> np.ndarray:
     """Base-2 exponent t of the surface lobe's exp(-t ln 2) per lane and channel (N, C):
-    pi^2 l_c^2 f_s^2 (Harvey-Shack, MODEL.md Eq. 21-22) or theta_s^2 / (2 sigma^2) (Eq. 20)."""
+    pi^2 l_c^2 f_s^2 (Harvey-Shack, docs/model.md Eq. 21-22) or theta_s^2 / (2 sigma^2) (Eq. 20)."""
     if p.specular == "harvey_shack":
         s2 = np.sum((wo[:, :2] + wi[:, :2]) ** 2, axis=1, keepdims=True)
         x = np.pi**2 * p.correlation_length**2 * s2 / (lam_nm * 1e-3) ** 2

@@ -1,6 +1,6 @@
-"""Grain models (MODEL.md, property `grains`): effective-medium agglomerates and Hapke's
+"""Grain models (docs/model.md, property `grains`): effective-medium agglomerates and Hapke's
 equivalent slab. The C++ functions of ``mitsuba_powder._optics`` and the plugin's albedo are
-checked against tests/grain_reference.py (NumPy + miepython, written from MODEL.md only)."""
+checked against tests/grain_reference.py (NumPy + miepython, written from docs/model.md only)."""
 
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def test_oracle_reproduces_model_md_mixing_values():
 @pytest.mark.parametrize("m", [1.33 + 0j, 3.0 + 0.5j, 2.9 + 1.5j, 0.3 + 3.0j])
 @pytest.mark.parametrize("f", [0.01, 0.2, 0.5, 0.9])
 def test_oracle_bruggeman_root_solves_the_mixing_equation(m, f):
-    """The chosen root solves MODEL.md's first form of the rule, is on the physical branch (the
+    """The chosen root solves docs/model.md's first form of the rule, is on the physical branch (the
     one connected to eps_i at f = 1, followed in small steps of f) and is close to Maxwell
     Garnett's (the same first order in f) for a dilute mixture."""
     eps_i = m * m
@@ -358,7 +358,7 @@ def test_plugin_albedo_llvm_ad_mono(case):
 
 
 def test_plugin_slab_reference_value():
-    """MODEL.md: n = 2.9, k = 0.05, D = 1 um, lam = 0.55 um -> rho = 0.34784."""
+    """docs/model.md: n = 2.9, k = 0.05, D = 1 um, lam = 0.55 um -> rho = 0.34784."""
     use_variant("llvm_ad_mono")
     bsdf = mi.load_dict({"type": "powder", "grains": "slab", "radius": 0.5, "eta": 2.9,
                          "k": 0.05, "wavelength": 550.0})
@@ -378,7 +378,7 @@ def test_plugin_grains_sphere_is_the_default():
 @pytest.mark.parametrize("props", [{"grains": "agglomerate", "agglomerate_radius": 0.3},
                                    {"grains": "slab", "radius": 2.0}], ids=["agglomerate", "slab"])
 def test_tau_o_still_comes_from_the_grain_material(props):
-    """MODEL.md: tau_o comes from the material's Re(eta) whatever the grain model."""
+    """docs/model.md: tau_o comes from the material's Re(eta) whatever the grain model."""
     use_variant("scalar_spectral")
     si = mi.SurfaceInteraction3f()
     si.wavelengths = mi.UnpolarizedSpectrum(*SPECTRAL_SETS[0])
@@ -656,7 +656,7 @@ def test_small_crystallites_do_not_warn(variant):
 @pytest.mark.parametrize("variant", WARN_VARIANTS)
 def test_paper_crystallites_warn_where_they_exceed_the_limit(variant):
     """The paper's r = 0.017 um: its size parameter is 0.35-0.79 over 360-830 nm (0.54-0.74 at
-    the rgb wavelengths), above MODEL.md's 0.5 at the short wavelengths: the warning says so
+    the rgb wavelengths), above docs/model.md's 0.5 at the short wavelengths: the warning says so
     and names the longest wavelength concerned."""
     use_variant(variant)
     lams = RGB_WAVELENGTHS if variant == "llvm_ad_rgb" else np.arange(360.0, 831.0)

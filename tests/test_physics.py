@@ -65,7 +65,7 @@ def hemispherical_reflectance(bsdf, theta_i_deg: float, n: int = 2048) -> np.nda
 
 @pytest.mark.parametrize("theta_i", [0.0, 30.0, 60.0, 80.0])
 def test_hemispherical_reflectance_white_powder(theta_i):
-    """A_v = 1, rho = 1, g = 0, tau_o = 2/3, kappa = 1/um at 700 nm: 0.94..0.97 (MODEL.md)."""
+    """A_v = 1, rho = 1, g = 0, tau_o = 2/3, kappa = 1/um at 700 nm: 0.94..0.97 (docs/model.md)."""
     use_variant("llvm_ad_mono")
     p = Params(amplitude_volume=1.0, g=0.0, extinction=1.0, tau_o=2.0 / 3.0)
     bsdf = make_bsdf(p, Albedo([1.0, 1.0, 1.0]), wavelength=700.0)

@@ -1,5 +1,5 @@
 """The independent reference fit (tests/reference_fit.py) that the product's fitter is judged
-against (issue 10) works: its Fresnel tau_o matches MODEL.md's reference values, and its
+against (issue 10) works: its Fresnel tau_o matches docs/model.md's reference values, and its
 multi-start least squares recovers known parameters from data that tests/reference.py's model
 generates at PTFE geometries (a subset of measurements/ptfe_germer2017.csv)."""
 
@@ -49,7 +49,7 @@ def _brf(geometry, values):
 @pytest.mark.parametrize("n, tau_o", [(1.0, 2.0 / 3.0), (1.33, 1.6769), (1.5, 2.4186),
                                       (2.0, 5.4161), (2.9, 14.304)])
 def test_tau_o_matches_model_md(n, tau_o):
-    # MODEL.md gives 4-5 significant digits
+    # docs/model.md gives 4-5 significant digits
     assert tau_o_fresnel(n) == pytest.approx(tau_o, abs=6e-5 if n < 2.9 else 6e-4)
 
 

@@ -1,7 +1,7 @@
 """Per-pixel powder maps from RTI captures (mitsuba_powder.rti_fit), on SYNTHETIC captures.
 
 References: the forward model against separately loaded plugin instances evaluated in
-``scalar_rgb`` with an independent (NumPy, Gram-Schmidt) tangent frame and MODEL.md's argument
+``scalar_rgb`` with an independent (NumPy, Gram-Schmidt) tangent frame and docs/model.md's argument
 order ``f(wi = light, wo = view)``; the Jacobian against central differences; the fits against
 the known maps the synthetic capture was rendered from.
 """

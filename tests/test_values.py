@@ -1,4 +1,4 @@
-"""eval() of the plugin against the independent NumPy implementation of MODEL.md.
+"""eval() of the plugin against the independent NumPy implementation of docs/model.md.
 
 Issue requirement: 1e-4 relative over >= 10,000 random direction pairs and >= 20 random
 parameter sets, each lobe alone and all together, in scalar_rgb, scalar_spectral,

@@ -18,6 +18,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from docs_output import add_output_options, output_dir  # noqa: E402
 
 from mitsuba_powder.ipag import from_project, to_project  # noqa: E402
 from mitsuba_powder.measurements import gonio_directions  # noqa: E402
@@ -48,7 +49,7 @@ def draw(ax, convention: str, title: str, rule: str) -> None:
     ax.plot([0, 0], [0, 1.1], color="0.5", lw=1)
     ax.text(0, 1.13, "normal", ha="center", fontsize=8, color="0.4")
     ti = np.radians(THETA_I)
-    # light: at azimuth 0, on +x (MODEL.md); the arrow points from the source to the sample
+    # light: at azimuth 0, on +x (docs/model.md); the arrow points from the source to the sample
     src = np.array([np.sin(ti), np.cos(ti)]) * 1.25
     ax.annotate("", xy=(0.03, 0.03), xytext=src,
                 arrowprops=dict(arrowstyle="-|>", color="#e8a200", lw=2.5))
@@ -76,10 +77,10 @@ def draw(ax, convention: str, title: str, rule: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default=str(ROOT / "docs" / "figures"))
+    add_output_options(parser, ROOT / "docs" / "figures", "ipag_conventions.png")
     args = parser.parse_args()
     fig, axes = plt.subplots(1, 3, figsize=(15, 3.9))
-    draw(axes[0], "project", "project (CSV, MODEL.md)",
+    draw(axes[0], "project", "project (CSV, docs/model.md)",
          "light at azimuth 0; θo signed, + on the light's side")
     draw(axes[1], "signed", "older IPAG files (count line)",
          "e signed, + on the forward side; azimuth 0: θo = -e, φ = 0")
@@ -88,7 +89,7 @@ def main() -> None:
     fig.suptitle(f"Plane of incidence, incidence {THETA_I:g} deg: the same two directions "
                  "written in each convention", fontsize=11)
     fig.tight_layout()
-    out = Path(args.out)
+    out = output_dir(args, ROOT / "docs" / "figures")
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "ipag_conventions.png", dpi=110)
     print(f"wrote {out / 'ipag_conventions.png'}")

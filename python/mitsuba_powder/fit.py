@@ -44,7 +44,7 @@ from .optimise import AGREEMENT, MultistartResult, ParamSpec, multistart, sobol_
 from .variants import use_variant
 
 FITTABLE: dict[str, ParamSpec] = {
-    # A_v stays near 1 for real powders (MODEL.md); a wide range opens a degenerate valley
+    # A_v stays near 1 for real powders (docs/model.md); a wide range opens a degenerate valley
     # where a tiny albedo (small grains) is traded against a huge A_v
     "amplitude_volume": ParamSpec(0.05, 5.0, True, 1.0),
     "g": ParamSpec(-0.95, 0.95, False, 0.0),

@@ -11,11 +11,22 @@ The virtual goniometer (the same geometry as ``scenes/gonio.xml``):
   ``wo = (sin theta_o cos phi, sin theta_o sin phi, cos theta_o)``, with a box pixel filter,
   so that every pixel is an independent Monte Carlo estimate of the same radiance.
 
-All sensors of one incidence are rendered at once through Mitsuba's ``batch`` sensor. The
-measured reflectance factor is ``BRF = pi L / (E cos theta_i)``; its Monte Carlo standard
+All sensors of one incidence are rendered at once through Mitsuba's ``batch`` sensor, each
+image with a guard column on either side that the estimate leaves out (:data:`GUARD_COLUMNS`).
+The measured reflectance factor is ``BRF = pi L / (E cos theta_i)``; its Monte Carlo standard
 error is the spread of the pixels over the square root of their number. The analytic BRF is
 ``pi f(wi, wo)`` from the plugin's ``eval`` (averaged over the source disk by quadrature), and
 in spectral variants it goes through the film's own spectral-to-sRGB weighting.
+
+Two kinds of values, checked differently (:meth:`GonioResult.deterministic`):
+
+- **deterministic**: a collimated source in an RGB or mono variant (or any value whose
+  standard error is exactly 0). Every sample is the same ``f E cos theta_i``: nothing is
+  random, the standard error is 0 or float noise, and a z-score would only measure rounding.
+  These values are compared with the analytic BRF to a relative tolerance derived from float32
+  arithmetic (:meth:`GonioResult.relative_tolerance`).
+- **Monte Carlo**: a source of finite size (emitter, BSDF or MIS sampling) or a spectral
+  variant (wavelength sampling). These get the z-test, ``|rendered - analytic| <= 3 sigma``.
 """
 
 from __future__ import annotations
@@ -34,8 +45,25 @@ SOURCE_DISTANCE = 1.0e4  # scene units; the visible patch is ~3 units wide
 CAMERA_DISTANCE = 10.0
 PATCH_HALF_SIZE = 100.0
 STRATEGIES = ("emitter", "bsdf", "mis")
-#: relative tolerance floor (float32 rounding) used where the Monte Carlo error vanishes
-FLOAT_FLOOR = 1e-5
+#: guard columns on each side of every geometry's image in the batch film, left out of the
+#: estimate. Without them, a sample near the border of two sub-images of the batch sensor
+#: could be traced by one sub-sensor and splatted into the other's border column (float32
+#: rounding of the film position, which reaches 5e-4 pixel at x ~ 4000): one sample of the
+#: neighbouring geometry in a pixel, a bias of up to 3e-5 of the BRF, measured on the PTFE
+#: file's 305 geometries at 75 degrees (docs/gonio_validation.md)
+GUARD_COLUMNS = 1
+#: float32 unit roundoff 2^-24 (relative rounding error of one operation)
+FLOAT32_U = 2.0**-24
+#: rounding of the plugin's eval and of the final scalings (film division, radiance to BRF),
+#: in units of FLOAT32_U: a bound on what a render at exactly the analytic directions adds
+#: besides the accumulation (measured: at most 3.4 u at 1 spp, where accumulation is exact)
+EVAL_ULPS = 16.0
+#: how far the render's directions are from the analytic ones, per component, in units of
+#: FLOAT32_U: the camera ray, the patch's frame and the directional emitter are float32
+#: transforms (measured: at most 2 u over both protocols; twice that as the bound)
+DIRECTION_ULPS = 4.0
+#: step (radians) of the one-sided differences of :func:`direction_sensitivity`
+SENSITIVITY_STEP = 1e-5
 
 
 @dataclass
@@ -52,6 +80,10 @@ class GonioResult:
         measured: BRF of the measurement file, (N,), when one was given.
         variant, spp, resolution, source_radius, strategy: how it was rendered.
         seconds: wall-clock time of the renders, s.
+        sensitivity: ``G``, the sum over the two tangent directions of ``wo`` and of ``wi`` of
+            ``|d ln f / d angle|`` (per radian) at the geometry, (N, C): how much a rounding
+            of the directions moves the BRF (:func:`direction_sensitivity`); 0 if not given,
+            and 0 for the Monte Carlo values of spectral variants (not computed there).
     """
 
     theta_i: np.ndarray
@@ -70,36 +102,85 @@ class GonioResult:
     strategy: str = "emitter"
     seconds: float = 0.0
     properties: dict = field(default_factory=dict)
+    sensitivity: np.ndarray | None = None
+
+    def deterministic(self) -> np.ndarray:
+        """True for values without Monte Carlo noise, (N, C): a collimated source in an RGB
+        or mono variant (every sample is ``f E cos theta_i`` at the same directions; the
+        standard error is 0, or float noise where a pixel's samples were summed in another
+        order), and any value whose standard error is exactly 0."""
+        by_construction = self.source_radius == 0.0 and "spectral" not in self.variant
+        return np.broadcast_to(by_construction, self.stderr.shape) | (self.stderr == 0.0)
+
+    def relative_tolerance(self) -> np.ndarray:
+        """Relative difference float32 arithmetic allows between render and analytic BRF,
+        (N, C): ``u (spp + EVAL_ULPS + sqrt(3) DIRECTION_ULPS G)`` with ``u = 2^-24``.
+
+        - ``spp u``: a pixel sums its ``spp`` samples in float32 (the error bound of recursive
+          summation of ``spp`` terms, ``(spp - 1) u``, plus the division by the weight);
+        - ``EVAL_ULPS u`` (16 u): the eval and the scalings;
+        - ``sqrt(3) DIRECTION_ULPS G u``: the render's directions differ from the analytic
+          ones by up to ``DIRECTION_ULPS`` (4) u per component, at most ``sqrt(3)`` times that
+          in angle, and the BRF changes by ``G`` (:attr:`sensitivity`) per radian.
+        """
+        g = 0.0 if self.sensitivity is None else self.sensitivity
+        return FLOAT32_U * (self.spp + EVAL_ULPS + np.sqrt(3.0) * DIRECTION_ULPS * g) * \
+            np.ones_like(self.analytic)
+
+    def relative_difference(self) -> np.ndarray:
+        """|rendered - analytic| / |analytic|, (N, C)."""
+        return np.abs(self.rendered - self.analytic) / np.maximum(np.abs(self.analytic), 1e-30)
 
     def tolerance(self) -> np.ndarray:
-        """``3 sigma_MC`` plus a float32 floor ``1e-5 |analytic|`` (N, C)."""
-        return 3.0 * self.stderr + FLOAT_FLOOR * np.abs(self.analytic)
+        """Allowed |rendered - analytic|, (N, C): the float32 tolerance
+        ``relative_tolerance |analytic|``, plus ``3 sigma_MC`` for Monte Carlo values."""
+        floor = self.relative_tolerance() * np.abs(self.analytic)
+        return np.where(self.deterministic(), floor, 3.0 * self.stderr + floor)
 
     def z(self) -> np.ndarray:
-        """(rendered - analytic) / sqrt(stderr^2 + (floor analytic)^2), (N, C)."""
-        scale = np.sqrt(self.stderr**2 + (FLOAT_FLOOR * self.analytic) ** 2)
-        return (self.rendered - self.analytic) / np.maximum(scale, 1e-30)
+        """(rendered - analytic) / sqrt(stderr^2 + (relative_tolerance analytic)^2) for
+        Monte Carlo values; NaN for deterministic ones (no noise to measure), (N, C)."""
+        scale = np.sqrt(self.stderr**2 + (self.relative_tolerance() * self.analytic) ** 2)
+        z = (self.rendered - self.analytic) / np.maximum(scale, 1e-30)
+        return np.where(self.deterministic(), np.nan, z)
 
     def agrees(self) -> np.ndarray:
         """True where the render is within :meth:`tolerance` of the analytic BRF, (N, C)."""
         return np.abs(self.rendered - self.analytic) <= self.tolerance()
 
     def summary(self) -> dict:
-        """Counts and extremes of the agreement (for reports)."""
-        z = self.z()
-        n = z.size
+        """Counts and extremes of the agreement (for reports): the deterministic values
+        against the float32 tolerance, the Monte Carlo ones by their z."""
+        det = self.deterministic()
+        mc = ~det
+        rel = self.relative_difference()
+        tol = self.relative_tolerance()
+        ok = self.agrees()
+        z = self.z()[mc]
+        n_det, n_mc = int(det.sum()), int(mc.sum())
+        rel_stderr = self.stderr / np.maximum(np.abs(self.analytic), 1e-30)
         return {
-            "geometries": int(len(self.theta_i)), "values": int(n),
-            "max_abs_z": float(np.max(np.abs(z))) if n else 0.0,
-            "beyond_3_sigma": int(np.sum(~self.agrees())),
-            # only values with Monte Carlo noise can exceed by chance (a collimated source in
-            # RGB/mono is deterministic)
-            "expected_beyond_3_sigma_if_gaussian": round(0.0027 * int(np.sum(
-                self.stderr > FLOAT_FLOOR * np.abs(self.analytic))), 2),
-            "median_relative_stderr": float(np.median(self.stderr / np.maximum(
-                np.abs(self.analytic), 1e-30))),
-            "max_relative_difference": float(np.max(np.abs(self.rendered - self.analytic)
-                                                    / np.maximum(np.abs(self.analytic), 1e-30))),
+            "geometries": int(len(self.theta_i)), "values": int(det.size),
+            "deterministic": {
+                "values": n_det,
+                "max_relative_difference": float(rel[det].max()) if n_det else None,
+                "relative_tolerance_min": float(tol[det].min()) if n_det else None,
+                "relative_tolerance_max": float(tol[det].max()) if n_det else None,
+                "max_difference_over_tolerance": float((rel[det] / tol[det]).max())
+                if n_det else None,
+                "beyond_tolerance": int(np.sum(~ok[det])),
+                "tolerance": f"u (spp + {EVAL_ULPS:g} + sqrt(3) {DIRECTION_ULPS:g} G), "
+                             "u = 2^-24 (float32), G = |d ln f / d angle| summed over the "
+                             "tangent directions of wi and wo",
+            },
+            "monte_carlo": {
+                "values": n_mc,
+                "max_abs_z": float(np.max(np.abs(z))) if n_mc else None,
+                "beyond_3_sigma": int(np.sum(~ok[mc])),
+                "expected_beyond_3_sigma_if_gaussian": round(0.0027 * n_mc, 2),
+                "median_relative_stderr": float(np.median(rel_stderr[mc])) if n_mc else None,
+            },
+            "max_relative_difference": float(rel.max()),
         }
 
     def rows(self) -> list[dict]:
@@ -131,13 +212,15 @@ def film_dict(width: int, height: int) -> dict:
             "component_format": "float32"}
 
 
-def sensor_dict(direction: np.ndarray, resolution: int, spp: int) -> dict:
+def sensor_dict(direction: np.ndarray, resolution: int, spp: int, guard: int = 0) -> dict:
     """An orthographic sensor looking at the patch centre from the unit ``direction``,
-    covering 1 x 1 scene units on ``resolution^2`` pixels."""
+    covering 1 x 1 scene units on ``resolution^2`` pixels, and ``guard`` more columns of
+    pixels of the same size on each side (``resolution + 2 guard`` columns in all)."""
+    width = resolution + 2 * guard
     return {"type": "orthographic",
             "to_world": _transform_look(direction, CAMERA_DISTANCE)
-            @ mi.ScalarTransform4f().scale([0.5, 0.5, 1.0]),
-            "film": film_dict(resolution, resolution),
+            @ mi.ScalarTransform4f().scale([0.5 * width / resolution, 0.5, 1.0]),
+            "film": film_dict(width, resolution),
             "sampler": {"type": "independent", "sample_count": spp}}
 
 
@@ -283,6 +366,37 @@ def _eval_scalar(bsdf, view: np.ndarray, light: np.ndarray, lam) -> np.ndarray:
     return np.atleast_1d(np.array(value, dtype=np.float64)).ravel()
 
 
+def _tangents(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors orthogonal to each unit row of ``w`` and to each other, (K, 3) each."""
+    up = np.where(np.abs(w[:, 2:3]) > 0.99, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    a = np.cross(up, w)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    return a, np.cross(w, a)
+
+
+def direction_sensitivity(bsdf, wo: np.ndarray, wi: np.ndarray,
+                          step: float = SENSITIVITY_STEP) -> np.ndarray:
+    """``G`` (N, C): the sum over the two tangent directions of ``wo`` and the two of ``wi``
+    of ``|d ln f / d angle|`` (per radian), each the larger of the two one-sided differences of
+    ``step`` radians (so that the cusp of the coherent peak at back-scattering counts its
+    slope). ``wo`` (N, 3), ``wi`` one direction (3,)."""
+    wi_all = np.repeat(np.asarray(wi, dtype=np.float64)[None, :], len(wo), axis=0)
+    base = np.abs(eval_channels(bsdf, wo, wi_all))
+    total = np.zeros_like(base)
+    for moved in ("wo", "wi"):
+        w = wo if moved == "wo" else wi_all
+        for t in _tangents(w):
+            slope = np.zeros_like(base)
+            for sign in (1.0, -1.0):
+                wp = w + sign * step * t
+                wp /= np.linalg.norm(wp, axis=1, keepdims=True)
+                f = (eval_channels(bsdf, wp, wi_all) if moved == "wo"
+                     else eval_channels(bsdf, wo, wp))
+                slope = np.maximum(slope, np.abs(f - base) / step)
+            total += slope
+    return total / np.maximum(base, 1e-30)
+
+
 def _analytic(bsdf, wo: np.ndarray, wi: np.ndarray, source_radius: float) -> np.ndarray:
     """Analytic BRF (N, C) of the patch seen from ``wo`` lit from ``wi`` (one incidence)."""
     nodes, weights = _disk_nodes(wi, source_radius)
@@ -303,7 +417,7 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
     Args:
         properties: ``powder`` plugin properties (``mi.load_dict`` form, without ``type``),
             or a function of the wavelength (nm, mono variants) that returns them.
-        theta_i, theta_o, phi: geometries in degrees (MODEL.md convention: signed
+        theta_i, theta_o, phi: geometries in degrees (docs/model.md convention: signed
             ``theta_o``, light at azimuth 0), equal-length sequences.
         wavelength: nm per geometry, mono variants only (the plugin's ``wavelength``);
             default 700 nm.
@@ -350,9 +464,11 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
     rendered = np.empty((len(ti), n_c))
     stderr = np.empty((len(ti), n_c))
     analytic = np.empty((len(ti), n_c))
+    sensitivity = np.empty((len(ti), n_c))
     seconds = 0.0
     used: dict = {}
     lam_key = np.nan_to_num(lam, nan=-1.0)  # NaN (no wavelength) != NaN in a set
+    width = resolution + 2 * GUARD_COLUMNS
     keys = sorted(set(zip(lam_key.tolist(), ti.tolist(), strict=True)))
     with use_variant(variant):
         for lam_k, ti_k in keys:
@@ -365,9 +481,10 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
             scene = mi.load_dict({
                 "type": "scene", "integrator": integrator, "patch": patch_dict(props),
                 **source_dict(wi, source_radius),
-                "sensor": {"type": "batch", "film": film_dict(resolution * len(idx), resolution),
+                "sensor": {"type": "batch",
+                           "film": film_dict(width * len(idx), resolution),
                            "sampler": {"type": "independent", "sample_count": spp},
-                           **{f"s{j}": sensor_dict(wo_all[i], resolution, spp)
+                           **{f"s{j}": sensor_dict(wo_all[i], resolution, spp, GUARD_COLUMNS)
                               for j, i in enumerate(idx)}},
             })
             start = time.perf_counter()
@@ -375,7 +492,8 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
             dr.sync_thread()
             img = np.array(image, dtype=np.float64)
             seconds += time.perf_counter() - start
-            pix = img.reshape(resolution, len(idx), resolution, -1)[..., :n_c]
+            pix = img.reshape(resolution, len(idx), width, -1)[
+                :, :, GUARD_COLUMNS:GUARD_COLUMNS + resolution, :n_c]
             pix = np.moveaxis(pix, 1, 0).reshape(len(idx), resolution * resolution, n_c)
             # irradiance 1 normal to the beam; in spectral variants the film sees it as the
             # sRGB value of a unit spectrum
@@ -385,13 +503,20 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
             stderr[idx] = scale * pix.std(axis=1, ddof=1) / np.sqrt(pix.shape[1])
             bsdf = next(s.bsdf() for s in scene.shapes() if s.id() == "patch")
             analytic[idx] = _analytic(bsdf, wo_all[idx], wi, source_radius)
+            # G sets the float32 tolerance of the deterministic values; spectral variants
+            # (Monte Carlo in wavelength, and slow to differentiate in scalar_spectral) only
+            # need it where a standard error is exactly 0
+            need = idx if not mi.is_spectral else idx[(stderr[idx] == 0.0).any(axis=1)]
+            sensitivity[idx] = 0.0
+            if len(need):
+                sensitivity[need] = direction_sensitivity(bsdf, wo_all[need], wi)
             if progress is not None:
                 where = f"{lam_k:g} nm, " if mono else ""
                 progress(f"{where}theta_i {ti_k:g}: {len(idx)} geometries rendered")
     return GonioResult(ti, to, ph, lam, channels, rendered, stderr, analytic,
                        None if measured is None else np.asarray(measured, dtype=np.float64),
                        variant, spp, resolution, source_radius, strategy, seconds,
-                       used["all"] if "all" in used else used)
+                       used["all"] if "all" in used else used, sensitivity)
 
 
 def render_measurements(properties, data: Measurements, **kwargs) -> GonioResult:

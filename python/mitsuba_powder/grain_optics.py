@@ -9,7 +9,7 @@ wavelengths without building a plugin instance (or switching Mitsuba variants) f
 - the complex index at each wavelength: linear interpolation of the material's table
   (``material`` = ``hematite`` | ``magnetite`` | a refractiveindex.info YAML file), or constant
   ``eta``/``k`` numbers;
-- rho and its derivatives from the plugin's albedo table (``_optics.albedo_table``: MODEL.md's
+- rho and its derivatives from the plugin's albedo table (``_optics.albedo_table``: docs/model.md's
   grain models ``sphere``, ``agglomerate`` and ``slab``, one or two populations);
 - ``tau_o`` from the Fresnel reflectance at Re(index).
 
@@ -28,7 +28,7 @@ from . import _optics
 
 _DATA = Path(__file__).resolve().parent / "data" / "optical_constants"
 
-#: Grain models of the plugin's ``grains`` property (MODEL.md, "Grain models")
+#: Grain models of the plugin's ``grains`` property (docs/model.md, "Grain models")
 GRAIN_MODELS = ("sphere", "agglomerate", "slab")
 
 #: Effective-medium rules of the ``mixing`` property

@@ -4,7 +4,7 @@ project's measurement format (:mod:`mitsuba_powder.measurements`).
 Source convention (``PTFE.data.csv``): ``lambda`` in micrometres; ``thetai`` stored negative
 with ``phi = 0``, i.e. the source sits at azimuth 180 deg; ``thetar``, ``phir`` the viewing
 direction, so the mirror direction is ``phir = 0`` and back-scattering ``phir = 180``;
-``f_r11`` the unpolarised BRDF in 1/sr. In the gonio convention of MODEL.md the source sits at
+``f_r11`` the unpolarised BRDF in 1/sr. In the gonio convention of docs/model.md the source sits at
 azimuth 0, so the viewing azimuth is ``phir - 180``; ``theta_o = thetar`` (>= 0),
 ``theta_i = |thetai|``, ``brf = pi f_r11``. The data carry no uncertainty column.
 """

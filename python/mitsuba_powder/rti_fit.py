@@ -20,7 +20,7 @@ tangent frame of ``n``; the model is isotropic, so the tangent choice does not m
 evaluated exactly as Mitsuba's renderer does: ``bsdf.eval(ctx, si, wo)`` with
 ``si.wi = to_local(v)`` and ``wo = to_local(l_k)``, which returns ``f cos(theta_o) =
 f (n . l_k)``; the model (``energy="paper"``) is reciprocal, so this equals ``f(wi = l_k, wo =
-v) (n . l_k)`` in MODEL.md's naming (checked in ``tests/test_rti_fit.py``). A pixel whose light
+v) (n . l_k)`` in docs/model.md's naming (checked in ``tests/test_rti_fit.py``). A pixel whose light
 lies below its tangent plane (``n . l_k <= 0``, attached shadow) is 0; ``n . v > 0`` always
 holds here because every normal faces the camera. Values are "radiance for unit irradiance"
 when ``E_k = 1``; a Lambertian white (``f = 1/pi``) at normal incidence gives ``1/pi``. In RGB
