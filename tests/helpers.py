@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -12,6 +15,22 @@ from reference import Params
 
 #: The variants the installed plugin was built for (generated from CMakeLists.txt's list)
 ALL_VARIANTS = list(BUILT_VARIANTS)
+
+#: The project's shared folder (specification and data), beside the checkout
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+
+
+def needs_shared(path: Path):
+    """A skip marker for tests that read ``path`` from the shared folder beside the checkout.
+
+    Outside CI a missing folder skips the test (a clone without ``../shared``); in CI
+    (``CI=true``, where ``../shared`` is always laid beside the clone) the test runs and fails
+    on the missing file instead of being skipped silently."""
+    in_ci = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+    return pytest.mark.skipif(not Path(path).exists() and not in_ci,
+                              reason=f"{path} is missing: the shared folder is not beside the "
+                                     "checkout (in CI this test runs and fails instead)")
+
 
 #: Regular spectrum grid used for spectral albedos (nm)
 SPECTRUM_RANGE = (360.0, 830.0)

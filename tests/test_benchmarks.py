@@ -5,6 +5,7 @@ rots. Nothing here asserts on times."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -88,22 +89,42 @@ def test_eval_size_rejects_bad_threads(threads, tmp_path):
     assert not (tmp_path / "eval_size.json").exists()
 
 
+def _load_script(name: str):
+    from importlib.util import module_from_spec, spec_from_file_location
+
+    spec = spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    mod = module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def test_report_fills_every_table(quick_results, tmp_path):
+    """report.py replaces every table of the page with the one the results give: each table
+    body is first replaced by a sentinel, which must be gone afterwards."""
     _, results = quick_results
     doc = tmp_path / "benchmarks.md"
-    doc.write_text((ROOT / "docs" / "benchmarks.md").read_text())
+    original = (ROOT / "docs" / "benchmarks.md").read_text()
+    names = re.findall(r"<!-- table:(\w+) -->", original)
+    stale = original
+    for name in names:
+        stale = re.sub(rf"(<!-- table:{name} -->\n).*?(<!-- /table:{name} -->)",
+                       lambda m: m.group(1) + "STALE TABLE\n" + m.group(2), stale, flags=re.S)
+    assert stale.count("STALE TABLE") == len(names) >= 10
+    doc.write_text(stale)
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "report.py"), "--results",
                     str(results), "--doc", str(doc)], check=True, timeout=300)
     text = doc.read_text()
+    assert "STALE TABLE" not in text
+    expected = _load_script("report").tables(results)
+    assert sorted(names) == sorted(expected)
+    for name in names:
+        body = re.search(rf"<!-- table:{name} -->\n(.*?)\n<!-- /table:{name} -->", text,
+                         re.S).group(1)
+        assert body == expected[name], name
     assert "| llvm_ad_spectral | powder |" in text
-    assert text.count("<!-- table:") == text.count("<!-- /table:") >= 10
 
 
 def test_run_all_lists_every_script():
-    from importlib.util import module_from_spec, spec_from_file_location
-
-    spec = spec_from_file_location("run_all", ROOT / "benchmarks" / "run_all.py")
-    mod = module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _load_script("run_all")
     scripts = {p.name for p in (ROOT / "benchmarks").glob("bench_*.py")} | OTHER_SCRIPTS
     assert scripts == set(mod.SCRIPTS) == set(SCRIPTS)
