@@ -13,9 +13,18 @@
    version's defaults, so that today's and the earlier figures sit side by side
    (``--before-from FILE`` reuses the "before" rows of an earlier results file, with its date
    and command).
+4. The ``fit`` command end to end: the 26-wavelength data of case 4 (``--quick``: case 1)
+   written to a CSV and fitted by ``python -m mitsuba_powder.cli fit DATA.csv --figures MODE``
+   in a fresh process for each of ``--figures summary``, ``all`` and ``none``: the optimiser's
+   time (``optimizer.seconds`` of that run's ``fit.json``, i.e. ``FitResult.seconds``) beside
+   the command's wall time (process start to exit: imports, loading, fit, report, figures)
+   and their ratio, both from the same run. The modes take turns in each of ``--repeat``
+   rounds, after one unreported warm-up run (Dr.Jit's kernel cache and the file cache).
+   ``--command-only`` runs this section alone and writes results/fit_command.json.
 
-Prints tables, writes benchmarks/results/fit.json and fit.png.
-Run:  python benchmarks/bench_fit.py [--quick] [--before DIR]
+Prints tables, writes benchmarks/results/fit.json and fit.png (with section 4 in its meta as
+``command_rows``).
+Run:  python benchmarks/bench_fit.py [--quick] [--before DIR] [--command-only] [--repeat N]
 """
 
 from __future__ import annotations
@@ -24,12 +33,13 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _common import arg_parser
+from _common import arg_parser, print_table, save
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUTH = {"amplitude_volume": 1.1, "g": 0.2, "extinction": 0.5, "radius": 0.05,
@@ -137,6 +147,85 @@ def ptfe_rows(wavelengths: list[float], seeds: list[int], starts: int | None) ->
     return rows
 
 
+#: The ``fit --figures`` modes of section 4, in the order they take turns
+FIGURE_MODES = ("summary", "all", "none")
+#: Section 4's command, as the tables quote it
+FIT_COMMAND = "python -m mitsuba_powder.cli fit DATA.csv --figures MODE --out DIR"
+
+
+def command_rows(case: str, repeat: int, workdir: Path) -> list[dict]:
+    """Section 4: the ``fit`` command end to end, one fresh process per run (see the module
+    docstring)."""
+    import mitsuba_powder
+    from mitsuba_powder.measurements import save_measurements
+    from mitsuba_powder.protocols import simulate
+
+    protocol, wavelengths = CASES[case]
+    data = simulate(TRUTH, protocol, wavelengths, noise=0.015, seed=1)
+    csv = workdir / f"synthetic_{len(wavelengths)}wl.csv"
+    save_measurements(csv, data)
+    package = str(Path(mitsuba_powder.__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [package] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+
+    def run(mode: str, out: Path) -> tuple[float, dict]:
+        cmd = [sys.executable, "-m", "mitsuba_powder.cli", "fit", str(csv), "--figures", mode,
+               "--out", str(out)]
+        t = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=3600)
+        wall = time.perf_counter() - t
+        if proc.returncode != 0:
+            raise SystemExit(f"{' '.join(cmd)}: {proc.stderr.strip()[-2000:]}")
+        return wall, json.loads((out / "fit.json").read_text())
+
+    run("none", workdir / "warm-up")
+    rows = []
+    for r in range(repeat):
+        for mode in FIGURE_MODES:
+            out = workdir / f"{mode}_{r + 1}"
+            load = os.getloadavg()[0]  # other work on the machine: the times depend on it
+            wall, report = run(mode, out)
+            seconds = report["optimizer"]["seconds"]
+            rows.append({"case": case, "wavelengths": len(wavelengths),
+                         "measurements": len(data), "figures": mode, "run": r + 1,
+                         "optimiser_s": seconds, "command_s": wall,
+                         "other_s": wall - seconds, "ratio": wall / seconds,
+                         "png_files": len(list(out.glob("*.png"))), "load_1min": load})
+            print(f"fit --figures {mode:7s} ({len(data)} measurements, {len(wavelengths)} "
+                  f"wavelengths), run {r + 1}: optimiser {seconds:.2f} s, command "
+                  f"{wall:.2f} s, ratio {wall / seconds:.2f}, "
+                  f"{rows[-1]['png_files']} PNG files", flush=True)
+    return rows
+
+
+def command_medians(rows: list[dict]) -> list[dict]:
+    """Per ``--figures`` mode: the median over the runs of section 4 (the ratio is the median
+    of each run's own ratio, not a ratio of medians)."""
+    out = []
+    for mode in FIGURE_MODES:
+        runs = [r for r in rows if r["figures"] == mode]
+        if runs:
+            out.append({"figures": mode, "runs": len(runs), **{
+                k: float(np.median([r[k] for r in runs]))
+                for k in ("optimiser_s", "command_s", "other_s", "ratio")},
+                "ratio_max": max(r["ratio"] for r in runs),
+                "png_files": runs[0]["png_files"]})
+    return out
+
+
+MEDIAN_COLUMNS = [("figures", "--figures", "s"), ("runs", "runs", "d"),
+                  ("optimiser_s", "optimiser s", ".2f"), ("command_s", "command s", ".2f"),
+                  ("other_s", "command - optimiser s", ".2f"),
+                  ("ratio", "median ratio", ".2f"), ("ratio_max", "max ratio", ".2f"),
+                  ("png_files", "PNG files", "d")]
+COMMAND_COLUMNS = [("figures", "--figures", "s"), ("run", "run", "d"),
+                   ("measurements", "rows", "d"), ("wavelengths", "wl", "d"),
+                   ("optimiser_s", "optimiser s", ".2f"), ("command_s", "command s", ".2f"),
+                   ("other_s", "command - optimiser s", ".2f"),
+                   ("ratio", "command/optimiser", ".2f"), ("png_files", "PNG files", "d"),
+                   ("load_1min", "load avg", ".2f")]
+
+
 def plot(rows: list[dict], before: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -157,7 +246,6 @@ def plot(rows: list[dict], before: list[dict], path: Path) -> None:
 
 
 def main() -> None:
-    from _common import print_table, save
 
     parser = arg_parser(__doc__)
     parser.add_argument("--before", type=Path, default=None,
@@ -165,7 +253,27 @@ def main() -> None:
     parser.add_argument("--before-from", type=Path, default=None,
                         help="reuse the 'before' rows of an earlier results/fit.json (its "
                              "date and command are kept with them)")
+    parser.add_argument("--command-only", action="store_true",
+                        help="run section 4 alone (the fit command end to end per --figures "
+                             "mode) and write results/fit_command.json")
+    parser.add_argument("--repeat", type=int, default=None,
+                        help="rounds of section 4 (default 3; --quick: 1)")
     args = parser.parse_args()
+    repeat = args.repeat or (1 if args.quick else 3)
+    if repeat < 1:
+        parser.error(f"--repeat: {repeat} is outside the valid range [1, inf)")
+    command_case = "1" if args.quick else "4"
+    flags = (" --quick" if args.quick else "") + (f" --repeat {args.repeat}"
+                                                   if args.repeat else "")
+    if args.command_only:
+        with tempfile.TemporaryDirectory() as tmp:
+            cli = command_rows(command_case, repeat, Path(tmp))
+        print_table(cli, COMMAND_COLUMNS)
+        print_table(command_medians(cli), MEDIAN_COLUMNS)
+        save(args.out, "fit_command", cli, args.quick,
+             command="python benchmarks/bench_fit.py --command-only" + flags,
+             fit_command=FIT_COMMAND, medians=command_medians(cli))
+        return
     cases = ["1"] if args.quick else list(CASES)
     rows = synthetic_rows(cases)
     before = before_rows(cases, args.before) if args.before else []
@@ -175,7 +283,9 @@ def main() -> None:
                   for r in earlier["before"]]
     ptfe = (ptfe_rows([532.0], [0], 8) if args.quick else
             ptfe_rows([351.0, 532.0, 633.0, 1064.0], [0, 1, 2], None))
-    command = ("python benchmarks/bench_fit.py" + (" --quick" if args.quick else "")
+    with tempfile.TemporaryDirectory() as tmp:
+        cli = command_rows(command_case, repeat, Path(tmp))
+    command = ("python benchmarks/bench_fit.py" + flags
                + (" --before DIR" if args.before else ""))
     print_table(rows, [("protocol", "protocol", "s"), ("wavelengths", "wl", "d"),
                        ("free", "free", "d"), ("starts", "starts", "d"),
@@ -186,7 +296,10 @@ def main() -> None:
                        ("loss", "loss", ".6f"), ("reference_loss", "best known", ".6f"),
                        ("ratio", "loss/best", ".5f"), ("agreeing", "agreeing", "d"),
                        ("seconds", "s", ".2f")])
-    save(args.out, "fit", rows, args.quick, command=command, before=before, ptfe=ptfe)
+    print_table(cli, COMMAND_COLUMNS)
+    print_table(command_medians(cli), MEDIAN_COLUMNS)
+    save(args.out, "fit", rows, args.quick, command=command, before=before, ptfe=ptfe,
+         command_rows=cli, command_medians=command_medians(cli), fit_command=FIT_COMMAND)
     plot(rows, before, args.out / "fit.png")
 
 

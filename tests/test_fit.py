@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import use_variant
+from helpers import SHARED, needs_shared, use_variant
 from mitsuba_powder.cli import main
 from mitsuba_powder.fit import Problem, default_free, fit, predict, radius_branches
 from mitsuba_powder.grain_optics import GrainOptics
@@ -27,7 +27,7 @@ from mitsuba_powder.protocols import geometries, protocol_geometries, simulate
 from mitsuba_powder.ptfe import convert_germer_ptfe
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_PTFE = ROOT.parent / "shared" / "data" / "ptfe_germer2017" / "PTFE.data.csv"
+SHARED_PTFE = SHARED / "data" / "ptfe_germer2017" / "PTFE.data.csv"
 
 # ----------------------------------------------------------------- loader
 
@@ -78,7 +78,7 @@ def test_gonio_convention():
 # ----------------------------------------------------------------- PTFE
 
 
-@pytest.mark.skipif(not SHARED_PTFE.is_file(), reason="shared data not beside the repository")
+@needs_shared(SHARED_PTFE)
 def test_ptfe_conversion_is_reproducible(tmp_path):
     data = convert_germer_ptfe(SHARED_PTFE, tmp_path / "ptfe.csv")
     assert (tmp_path / "ptfe.csv").read_text() == (ROOT / "measurements" /
@@ -264,7 +264,7 @@ def test_two_populations_are_fitted_through_the_chain_rule():
 
 
 def test_joint_fit_frees_the_agglomerate_radius_and_fill():
-    """Hematite agglomerates (MODEL.md "Grain models"), the seed's 26 wavelengths, replicates,
+    """Hematite agglomerates (docs/model.md "Grain models"), the seed's 26 wavelengths, replicates,
     1.5 % noise: the default free set has the agglomerate radius in place of the radius; with
     the fill freed too, all seven are recovered within 3 sigma, through the chain rule of the
     agglomerate albedo's derivatives."""
@@ -649,8 +649,11 @@ def test_cli_simulate_fit_report_and_prediction(tmp_path, capsys):
     assert report["geometry"]["rows"] == report["n_measurements"]
     assert report["prediction"]["n"] == int(np.sum(load_measurements(data_path).theta_i == 60))
     assert report["prediction"]["relative_rmse_percent"] < 10
-    for png in ("principal_plane_700nm.png", "polar_700nm.png"):
+    # the default --figures summary: one set for the whole fit, no per-wavelength files
+    # (tests/test_fit_report.py: every mode)
+    for png in ("summary_rmse.png", "summary_residuals.png", "summary_principal_plane.png"):
         assert (out / png).stat().st_size > 10_000
+    assert not (out / "principal_plane_700nm.png").exists()
     # the reported parameters reproduce the fitted BRF through mi.load_dict
     use_variant("llvm_ad_mono")
     bsdf = mi.load_dict({"type": "powder", **report["parameters"], "wavelength": 700.0})

@@ -34,16 +34,20 @@ def _cmd_render(args: argparse.Namespace) -> int:
         spp=args.spp,
         defines=dict(_parse_define(d) for d in args.define),
         properties=props,
+        allow_missing=args.allow_missing,
     )
-    if result.applied:
-        print(f"set on every powder BSDF: {', '.join(result.applied)}")
+    if props:
+        print("set on every powder BSDF: " + (", ".join(
+            f"{k} = {props[k]}" for k in result.applied) or "nothing"))
+    if result.removed:
+        print(f"removed from the scene's powder (they would override what was set): "
+              f"{', '.join(result.removed)}")
     if result.not_applied:
-        print(f"NOT applied (not changeable after loading, or absent from this scene; set "
-              f"them in the scene file): {', '.join(result.not_applied)}")
-    print(
-        f"wrote {result.output} ({result.width}x{result.height}, {result.spp} spp, "
-        f"variant {result.variant}, {result.seconds:.2f} s)"
-    )
+        print(f"NOT applied (--allow-missing; not changeable after loading, or absent from "
+              f"this scene; set them in the scene file): {', '.join(result.not_applied)}")
+    spp = f"{result.spp} spp" + ("" if args.spp else " (the scene's)")
+    print(f"wrote {result.output} ({result.width}x{result.height}, {spp}, "
+          f"variant {result.variant}, {result.seconds:.2f} s)")
     return 0
 
 
@@ -92,9 +96,12 @@ def _read_reflectance_csv(path: str) -> tuple:
 
     import numpy as np
 
+    from .outputs import note_input
+
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"--reflectance {path}: no such file")
+    note_input(p)
     wl, values = [], []
     with p.open(newline="", encoding="utf-8") as fh:
         for lineno, row in enumerate(csv.reader(fh), start=1):
@@ -224,7 +231,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     held = None
     if held_out is not None and len(held_out):
         held = (held_out, predict(result, held_out))
-    path = write_report(result, args.out, held)
+    path = write_report(result, args.out, held, figures=args.figures)
     for name in result.free:
         keys = [k for k in result.uncertainties if k == name or k.startswith(name + "@")]
         for k in keys:
@@ -253,7 +260,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         st = statistics(held[1], held[0])
         print(f"prediction of {st['n']} held-out measurements: relative RMSE "
               f"{st['relative_rmse_percent']:.2f} %")
-    print(f"wrote {path} and figures in {args.out}")
+    print(f"wrote {path}" + {"none": " (no figures: --figures none)",
+                             "summary": f" and the summary figures in {args.out}",
+                             "all": f" and the summary and per-wavelength figures in "
+                                    f"{args.out}"}[args.figures])
     return 0
 
 
@@ -338,10 +348,17 @@ def _cmd_render_gonio(args: argparse.Namespace) -> int:
         result = render_gonio(props, ti, to, ph, wavelength=wl, variant=variant, **kwargs)
     path = write_gonio_report(args.out, result)
     s = result.summary()
+    d, m = s["deterministic"], s["monte_carlo"]
     print(f"{s['geometries']} geometries x {len(result.channels)} channels in "
-          f"{result.seconds:.1f} s ({result.variant}, {result.spp} spp): max |z| "
-          f"{s['max_abs_z']:.2f}, {s['beyond_3_sigma']} beyond 3 sigma (expected "
-          f"{s['expected_beyond_3_sigma_if_gaussian']} if Gaussian)")
+          f"{result.seconds:.1f} s ({result.variant}, {result.spp} spp)")
+    print(f"  deterministic (no Monte Carlo noise): {d['values']} values" + (
+        f", max relative difference {d['max_relative_difference']:.2g} against a float32 "
+        f"tolerance of {d['relative_tolerance_min']:.2g}-{d['relative_tolerance_max']:.2g}, "
+        f"{d['beyond_tolerance']} beyond it" if d["values"] else ""))
+    print(f"  Monte Carlo: {m['values']} values" + (
+        f", max |z| {m['max_abs_z']:.2f}, {m['beyond_3_sigma']} beyond 3 sigma (expected "
+        f"{m['expected_beyond_3_sigma_if_gaussian']} if Gaussian)" if m["values"]
+        else " (no z-test)"))
     print(f"wrote {path}, gonio.csv and gonio.png")
     return 0
 
@@ -375,7 +392,8 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
         render, photo, corners=_corners(args.chart) if args.chart else None,
         chart_half=args.chart_window, align_mode=args.align, region=region, white=args.white,
         saturation=(None if args.saturation < 0 else args.saturation) if args.saturation
-        is not None else (None if args.photo.lower().endswith(".exr") else 0.99))
+        is not None else (None if args.photo.lower().endswith(".exr") else 0.99),
+        max_clipped=args.max_clipped)
     path = write_report(args.out, stats, render, aligned, de)
     if stats.chart_delta_e_mean is not None:
         print(f"ColorChecker calibration: patches Delta E 2000 mean "
@@ -384,7 +402,9 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
     print(f"alignment ({args.align}): exposure {stats.exposure_stops:+.3f} stops, "
           f"white balance (R/G, 1, B/G) = ({wb})")
     if stats.saturated_pixels:
-        print(f"left out {stats.saturated_pixels} clipped photo pixels")
+        print(f"left out {stats.saturated_pixels} clipped photo pixels "
+              f"({100 * stats.clipped_fraction:.1f} % of the {stats.region_pixels} pixels "
+              "compared)")
     print(f"CIEDE2000 over {stats.pixels} pixels: mean {stats.mean:.2f}, median "
           f"{stats.median:.2f}, p95 {stats.p95:.2f}, max {stats.max:.2f}")
     print(f"wrote {path}, delta_e.png and side_by_side.png")
@@ -482,11 +502,37 @@ def _parse_define(text: str) -> tuple[str, str]:
     return name, value
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the help already states it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or not action.option_strings or action.default is None
+                or action.default is argparse.SUPPRESS or isinstance(action.default, bool)
+                or action.default == []):
+            return text
+        return text + " (default: %(default)s)"
+
+
+def _version() -> str:
+    """The installed distribution's version (no import of mitsuba needed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("mitsuba-powder")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        from . import __version__
+
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mitsuba-powder",
         description="Dry-powder reflectance (Gerardin et al. 2023) for Mitsuba 3.",
+        formatter_class=_HelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"mitsuba-powder {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("info", help="show where the plugin is and whether LLVM works")
@@ -504,7 +550,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", default=None,
                    help="JSON of powder properties or a fit.json, set on every powder BSDF")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="a powder property set on every powder BSDF (repeatable)")
+                   help="a powder property set on every powder BSDF (repeatable); a name that "
+                        "is not a powder property is an error")
+    p.add_argument("--allow-missing", action="store_true",
+                   help="render even if some --params/--set properties cannot be set on this "
+                        "scene (default: an error naming them)")
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("albedo", help="the albedo spectrum that reproduces a measured "
@@ -562,6 +612,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "wavelength (the narrow-cone regime of the theory); free: lift it")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="fit_out", help="output folder (fit.json, figures)")
+    p.add_argument("--figures", choices=("summary", "all", "none"), default="summary",
+                   help="summary: one set for the whole fit (relative RMSE per wavelength, "
+                        "residuals against the angles, the plane of incidence at up to 4 "
+                        "wavelengths); all: also a plane-of-incidence and a polar figure per "
+                        "wavelength; none: fit.json only (default summary)")
     _add_data_options(p)
     p.set_defaults(func=_cmd_fit)
 
@@ -618,7 +673,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=int, default=16, help="pixels per side per geometry")
     p.add_argument("--source-radius", type=float, default=0.0,
                    help="angular radius of the source, degrees (0: collimated)")
-    p.add_argument("--strategy", default="emitter", help="emitter, bsdf or mis")
+    p.add_argument("--strategy", default="emitter", choices=("emitter", "bsdf", "mis"),
+                   help="how the source is sampled: emitter, bsdf or multiple importance "
+                        "sampling")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="gonio_out", help="output folder")
     _add_data_options(p)
@@ -628,21 +685,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("render", help="rendered image (.exr, .png, .jpg)")
     p.add_argument("photo", help="photograph (.exr, .png, .jpg; 8 or 16 bit)")
     for who in ("render", "photo"):
-        p.add_argument(f"--{who}-encoding", default="auto",
-                       help="auto (EXR linear, PNG/JPEG sRGB), linear or srgb")
+        p.add_argument(f"--{who}-encoding", default="auto", choices=("auto", "linear", "srgb"),
+                       help="auto: EXR linear, PNG/JPEG sRGB-encoded")
     p.add_argument("--chart", default=None, metavar="'X,Y X,Y X,Y X,Y'",
                    help="calibrate the photo with the ColorChecker 24 in it: pixel centres of "
                         "its dark skin, bluish green, black and white patches")
     p.add_argument("--chart-window", type=int, default=3,
                    help="half-size of the patch sampling window, px")
     p.add_argument("--align", default="white-balance",
-                   help="none, exposure or white-balance (per-channel gains)")
+                   choices=("none", "exposure", "white-balance"),
+                   help="exposure: one gain; white-balance: per-channel gains")
     p.add_argument("--region", default=None, help="x0,y0,x1,y1: pixels to compare")
     p.add_argument("--white", type=float, default=None,
                    help="linear level of L* = 100 (default: the render's 99th percentile)")
     p.add_argument("--saturation", type=float, default=None,
                    help="leave out photo pixels with a channel >= this linear value (default "
                         "0.99 for PNG/JPEG, none for EXR; negative: keep all)")
+    p.add_argument("--max-clipped", type=float, default=0.1, metavar="FRACTION",
+                   help="stop with an error when more than this fraction of the compared "
+                        "region is clipped in the photo (0-1; 1: never)")
     p.add_argument("--out", default="photo_compare",
                    help="output folder (photo_comparison.json, delta_e.png, side_by_side.png)")
     p.set_defaults(func=_cmd_compare_photo)
@@ -696,14 +757,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (one image per .lp line, "
                                                 "the capture's format and bit depth)")
     p.set_defaults(func=_cmd_relight)
+    for command in sub.choices.values():
+        command.formatter_class = _HelpFormatter
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``mitsuba-powder`` command."""
+    from .outputs import guarding_inputs
+
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args))
+        with guarding_inputs():  # no command writes over a file it read
+            return int(args.func(args))
     except (ValueError, FileNotFoundError, RuntimeError, KeyError) as exc:
         print(f"mitsuba-powder: error: {exc}", file=sys.stderr)
         return 2
