@@ -48,7 +48,7 @@ def main() -> None:
         d = data.subset(data.wavelength == lam)
         result = fit(d, FREE, FIXED, starts=starts)
         with tempfile.TemporaryDirectory() as tmp:
-            write_report(result, tmp)
+            write_report(result, tmp, figures="all")
             for name in ("fit.json", f"principal_plane_{lam:g}nm.png", f"polar_{lam:g}nm.png"):
                 shutil.copy(Path(tmp) / name, figures / (f"{lam:g}nm_{name}"
                                                          if name == "fit.json" else name))
