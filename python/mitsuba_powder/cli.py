@@ -37,8 +37,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
         allow_missing=args.allow_missing,
     )
     if props:
+        shown = lambda v: f"{v:.6g}" if isinstance(v, float) else str(v)  # noqa: E731
         print("set on every powder BSDF: " + (", ".join(
-            f"{k} = {props[k]}" for k in result.applied) or "nothing"))
+            f"{k} = {shown(props[k])}" for k in result.applied) or "nothing"))
     if result.removed:
         print(f"removed from the scene's powder (they would override what was set): "
               f"{', '.join(result.removed)}")
