@@ -750,17 +750,12 @@ public:
                              (sample1 < w.coherent + w.surface),
              pick_diffuse  = active && !pick_coherent && !pick_surface;
 
+        // sample1 picks the lobe, sample2 draws the direction from it
         Vector3f wo = warp::square_to_cosine_hemisphere(sample2);
-
-        // sample1 rescaled within the picked lobe's interval: a third uniform number
-        Float u3 = dr::select(pick_coherent, sample1 / dr::maximum(w.coherent, 1e-30f),
-                              (sample1 - w.coherent) / dr::maximum(w.surface, 1e-30f));
-        u3 = dr::clip(u3, 0.f, dr::OneMinusEpsilon<Float>);
         if (lobes.coherent)
-            dr::masked(wo, pick_coherent) =
-                sample_coherent(si.wi, w.width_coherent, sample2, u3);
+            dr::masked(wo, pick_coherent) = sample_coherent(si.wi, w.width_coherent, sample2);
         if (lobes.surface)
-            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2, u3);
+            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2);
 
         auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
 
@@ -2236,10 +2231,19 @@ private:
             e_coherent = av * .25f * peak * dr::square(width_c);
         }
 
-        Float width_s;
+        Float width_s, wide = 0.f;
         if (m_specular == SpecularModel::HarveyShack) {
             width_s = lam_mean * dr::InvPi<ScalarFloat> * dr::InvSqrtTwo<ScalarFloat> /
                       value(powder_param::CorrelationLength);
+            // Truncated to the disc, a lobe much wider than the disc tends to the
+            // uniform disc, which is the cosine lobe; the chord lobe (powder_lobes.h)
+            // tends to 1 / (4 sqrt(1 - u^2)) instead, whose peaks at the ends of the
+            // short chords a quadrature resolves poorly. So a share 1 - (0.4 / width)^2
+            // of the surface lobe's probability goes to the cosine lobe: none for widths
+            // up to 0.4 (l_c >= 0.3 um); wider lobes have S > 0 on the whole disc
+            // (exponent at most (1 + |c|)^2 / (2 width^2) < 13), so that these cosine
+            // samples never have weight 0
+            wide = dr::maximum(1.f - dr::square(.4f / width_s), 0.f);
             // S integrated over the projected plane, times the share of a centred
             // Gaussian of this width inside the unit disc (small l_c: wide lobes
             // carry little energy onto the hemisphere)
@@ -2261,11 +2265,17 @@ private:
         // lobe with little energy gets few samples. (Floors of 10 % made the
         // weights bimodal and, for a near-Lambertian powder under broad light,
         // up to 25x noisier than cosine sampling; see docs/benchmarks.md.) The
-        // cosine lobe keeps at least 10 %.
+        // cosine lobe keeps at least 10 %, but for the surface term alone: S is
+        // exactly 0 beyond ~9 widths of its lobe (exp2_neg's cut), so cosine
+        // samples there had weight 0 (8-10 % of all samples for l_c = 3-10 um),
+        // and nothing else is left to sample.
+        bool surface_only = lobes.surface && !lobes.single && !lobes.multiple && !lobes.coherent;
         w.coherent = lobes.coherent && !m_cosine_only
             ? Float(.9f * e_coherent * inv_total) : Float(0.f);
-        w.surface = lobes.surface && !m_cosine_only
-            ? dr::select(as > 0.f, .9f * e_surface * inv_total, 0.f) : Float(0.f);
+        w.surface = !lobes.surface || m_cosine_only ? Float(0.f)
+                    : surface_only ? dr::select(as > 0.f, 1.f - wide, 0.f)
+                                   : dr::select(as > 0.f, .9f * e_surface * inv_total, 0.f) *
+                                         (1.f - wide);
         w.width_coherent = width_c;
         w.width_surface = width_s;
         return w;
@@ -2274,35 +2284,42 @@ private:
     static Float h_of(Float a, Float b) { return a * b / (a + b); }
 
     /// Coherent lobe: a 2D Cauchy law of wo_xy - wi_xy with scale b, truncated
-    /// at the rim of the projected disc (powder_lobes.h)
-    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u,
-                                    Float u3) {
+    /// to the projected disc chord by chord (powder_lobes.h)
+    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u) {
         return powder::sample_projected<powder::Radial::Cauchy>(
-            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, u, u3);
+            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, Float(0.f), u);
     }
 
     static Float pdf_coherent(const Vector3f &wi, const Vector3f &wo, Float b) {
         return powder::pdf_projected<powder::Radial::Cauchy>(
-            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, wo);
+            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, Float(0.f), wo);
     }
 
     /// Surface lobe. Harvey-Shack: a 2D Gaussian of wo_xy + wi_xy (the spatial
-    /// frequency times lambda, MODEL.md Eq. 21-22) truncated at the rim of the
-    /// projected disc; Gaussian: a 2D Gaussian in the tangent plane of the mirror
-    /// direction (exponential map) truncated at the horizon (powder_lobes.h)
-    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u,
-                            Float u3) const {
+    /// frequency times lambda, MODEL.md Eq. 21-22) truncated to the projected disc
+    /// chord by chord, moved inwards to follow the factor (mu_i + mu_o)^2; Gaussian: a
+    /// Gaussian in the cylindrical equal-area coordinates about the axis perpendicular
+    /// to the plane of incidence, truncated at the horizon (powder_lobes.h)
+    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u) const {
         if (m_specular == SpecularModel::HarveyShack)
             return powder::sample_projected<powder::Radial::Gaussian>(
-                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width, u, u3);
-        return powder::sample_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, u, u3);
+                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width,
+                surface_shift(wi, width), u);
+        return powder::sample_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, u);
     }
 
     Float pdf_surface(const Vector3f &wi, const Vector3f &wo, Float width) const {
         if (m_specular == SpecularModel::HarveyShack)
             return powder::pdf_projected<powder::Radial::Gaussian>(
-                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width, wo);
+                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width,
+                surface_shift(wi, width), wo);
         return powder::pdf_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, wo);
+    }
+
+    /// Shift of the Harvey-Shack lobe towards the zenith (powder::projected_shift)
+    static Float surface_shift(const Vector3f &wi, Float width) {
+        return powder::projected_shift(dr::sqrt(dr::square(wi.x()) + dr::square(wi.y())),
+                                       Frame3f::cos_theta(wi), width);
     }
 
     Float pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
