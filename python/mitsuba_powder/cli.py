@@ -308,8 +308,12 @@ def _cmd_compare_models(args: argparse.Namespace) -> int:
             raise ValueError(f"--wavelength {args.wavelength}: not in {args.data}")
     free = [n.strip() for n in args.free.split(",")] if args.free else None
     fixed = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
-    print(f"comparing the powder model with lambertian, oren_nayar, rtlsr and hapke on "
-          f"{len(data)} measurements at {data.wavelengths().tolist()} nm")
+    from .model_comparison import surface_fresnel_settings
+
+    modes = surface_fresnel_settings(fixed)
+    print(f"comparing the powder model (surface_fresnel: {', '.join(modes)}) with lambertian, "
+          f"oren_nayar, rtlsr and hapke on {len(data)} measurements at "
+          f"{data.wavelengths().tolist()} nm")
     rows = compare_models(data, free, fixed, starts=args.starts)
     path = write_comparison(rows, args.out)
     print(path.read_text())

@@ -39,7 +39,13 @@ import numpy as np
 
 from .grain_optics import DEFAULT_FILL, GRAIN_VARIABLES, GrainOptics
 from .measurements import Measurements
-from .model import GRAIN_PROPERTIES, VARIANT, BatchBRF, PowderBRF, batch_variant
+from .model import (
+    VARIANT,
+    BatchBRF,
+    PowderBRF,
+    batch_variant,
+    engine_properties,
+)
 from .optimise import AGREEMENT, MultistartResult, ParamSpec, multistart, sobol_starts
 from .variants import use_variant
 
@@ -278,8 +284,7 @@ class Problem:
         self.grain_free = [n for n in GRAIN_VARIABLES if n in self.free]
         self.albedo_mode = ("free" if "albedo" in self.free else
                             "fixed" if "albedo" in self.fixed else "grains")
-        self.engine_properties = {k: v for k, v in self.fixed.items()
-                                  if k not in GRAIN_PROPERTIES + ("albedo", "tau_o")}
+        self.engine_properties = engine_properties(self.fixed)
         self.grains = GrainOptics(self.fixed)
         self.tau_o = (np.full(len(self.wavelengths), float(self.fixed["tau_o"]))
                       if "tau_o" in self.fixed else

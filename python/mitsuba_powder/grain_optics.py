@@ -40,6 +40,8 @@ GRAIN_VARIABLES = ("radius", "radius2", "fraction2", "agglomerate_radius", "aggl
 
 #: The plugin's default ``agglomerate_fill``
 DEFAULT_FILL = 0.5
+#: The plugin's default grain material (its ``material`` property)
+DEFAULT_MATERIAL = "hematite"
 
 
 class GrainOptics:
@@ -81,7 +83,7 @@ class GrainOptics:
             self.table = (np.array([1e-6, 1e3]), np.array([eta, eta], dtype=float),
                           np.array([k, k], dtype=float))
             return
-        material = properties.get("material", "hematite")
+        material = properties.get("material", DEFAULT_MATERIAL)
         if material == "hematite":
             wl, n, k = _optics.hematite_average(str(_DATA / "hematite_Querry-o.yml"),
                                                 str(_DATA / "hematite_Querry-e.yml"))

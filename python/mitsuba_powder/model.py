@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .grain_optics import DEFAULT_MATERIAL
 from .measurements import Measurements
 from .variants import use_variant
 
@@ -82,6 +83,24 @@ _KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
 #: they give as numbers (see :mod:`mitsuba_powder.grain_optics`)
 GRAIN_PROPERTIES = ("radius", "radius2", "fraction2", "grains", "agglomerate_radius",
                     "agglomerate_fill", "mixing", "material", "eta", "k")
+#: The grain material's index, which the surface term reads with surface_fresnel = "fresnel"
+INDEX_PROPERTIES = ("material", "eta", "k")
+
+
+def engine_properties(properties: dict) -> dict:
+    """The fixed properties :class:`BatchBRF` gives the plugin itself: all but the grain
+    properties, ``albedo`` and ``tau_o`` (which come per call, as numbers), and but ``type``
+    and ``wavelength``; with ``surface_fresnel = "fresnel"`` the grain material's index
+    (``material``, ``eta``, ``k``; the default material when none is given) too, since the
+    surface term's factor reads it."""
+    fresnel = properties.get("surface_fresnel") == "fresnel"
+    out = {k: v for k, v in properties.items()
+           if (k not in GRAIN_PROPERTIES or (fresnel and k in INDEX_PROPERTIES))
+           and k not in ("albedo", "tau_o", "type", "wavelength")}
+    if fresnel and not any(k in properties for k in INDEX_PROPERTIES):
+        # the engine gives tau_o as a number: name the material the fit's tau_o comes from
+        out["material"] = DEFAULT_MATERIAL
+    return out
 
 
 def _forward_grad(source, output):
@@ -129,8 +148,7 @@ class BatchBRF:
         self.varying = list(varying)
         self.wavelengths = data.wavelengths()
         n, w = len(data), len(self.wavelengths)
-        fixed = {k: v for k, v in properties.items()
-                 if k not in GRAIN_PROPERTIES + ("albedo", "tau_o", "type", "wavelength")}
+        fixed = engine_properties(properties)
         self.texels = max(self.batch * w, 2)  # a bitmap edited through mi.traverse: >= 2 x 2
         wi, wo = data.directions()
         lane_set = np.repeat(np.arange(self.batch), n)

@@ -13,34 +13,57 @@ from .fit_report import statistics
 from .measurements import Measurements
 from .outputs import output_path
 
+#: The powder model's rows, by its ``surface_fresnel`` setting
+POWDER_ROWS = {"none": "powder", "fresnel": "powder + surface Fresnel"}
+
+
+def surface_fresnel_settings(fixed: dict | None) -> list[str]:
+    """The ``surface_fresnel`` settings :func:`compare_models` fits: the one ``fixed`` gives,
+    else both (Eq. 23, and the surface term times the interface's Fresnel factor), except
+    where ``tau_o`` is given without the grain index the factor needs."""
+    fixed = fixed or {}
+    if "surface_fresnel" in fixed:
+        return [str(fixed["surface_fresnel"])]
+    if "tau_o" in fixed and not any(k in fixed for k in ("eta", "material")):
+        return ["none"]
+    return list(POWDER_ROWS)
+
 
 def compare_models(data: Measurements, free: list[str] | None = None,
                    fixed: dict | None = None, starts: int = 64) -> list[dict]:
     """Fit the powder model (per wavelength) and every baseline; one row per model and
-    wavelength with the number of parameters and the fit statistics. The powder model is fitted
-    in the EBS regime (kappa/k0 <= 0.25) and, as a row of its own where the optimum differs,
-    with the bound lifted (``powder (free regime)``)."""
+    wavelength with the number of parameters and the fit statistics.
+
+    The powder model is fitted as published (Eq. 23, ``powder``) and with the surface term's
+    Fresnel factor (``powder + surface Fresnel``, ``surface_fresnel = fresnel``), side by side
+    (:func:`surface_fresnel_settings`), each in the EBS regime (kappa/k0 <= 0.25) and, as a
+    row of its own where the optimum differs, with the bound lifted (``... (free
+    regime)``)."""
     if starts < 1:
         raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
     rows = []
     for lam in data.wavelengths():
         d = data.subset(data.wavelength == lam)
-        results = {regime: fit(d, free, fixed, starts=starts, regime=regime)
-                   for regime in ("ebs", "free")}
-        # the EBS regime is the powder model's row; the free regime gets its own row where
-        # lifting the bound changes the optimum
-        differ = results["free"].loss < results["ebs"].loss * (1.0 - 1e-6)
-        for regime, result in results.items():
-            if regime == "free" and not differ:
-                continue
-            rows.append({"model": "powder" if regime == "ebs" else "powder (free regime)",
-                         "regime": regime, "wavelength": float(lam),
-                         "parameters": len(result.uncertainties),
-                         **statistics(result.model_brf, d), "seconds": result.seconds,
-                         "fitted": {k: v for k, v in result.parameters.items()
-                                    if k in result.free},
-                         "kappa_over_k0": result.regime["kappa_over_k0"],
-                         "warnings": result.warnings})
+        for mode in surface_fresnel_settings(fixed):
+            label = POWDER_ROWS.get(mode, f"powder (surface_fresnel = {mode})")
+            props = {**(fixed or {}), "surface_fresnel": mode}
+            results = {regime: fit(d, free, props, starts=starts, regime=regime)
+                       for regime in ("ebs", "free")}
+            # the EBS regime is the powder model's row; the free regime gets its own row
+            # where lifting the bound changes the optimum
+            differ = results["free"].loss < results["ebs"].loss * (1.0 - 1e-6)
+            for regime, result in results.items():
+                if regime == "free" and not differ:
+                    continue
+                rows.append({"model": label if regime == "ebs" else f"{label} (free regime)",
+                             "regime": regime, "surface_fresnel": mode,
+                             "wavelength": float(lam),
+                             "parameters": len(result.uncertainties),
+                             **statistics(result.model_brf, d), "seconds": result.seconds,
+                             "fitted": {k: v for k, v in result.parameters.items()
+                                        if k in result.free},
+                             "kappa_over_k0": result.regime["kappa_over_k0"],
+                             "warnings": result.warnings})
     for name in MODELS:
         for b in fit_baseline(name, data, starts=starts):
             sel = data.wavelength == b.wavelength

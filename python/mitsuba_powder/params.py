@@ -12,7 +12,8 @@ from .outputs import note_input
 POWDER_PROPERTIES = (
     "amplitude_volume", "g", "extinction", "radius", "radius2", "fraction2", "grains",
     "agglomerate_radius", "agglomerate_fill", "mixing", "material", "eta", "k", "albedo",
-    "tau_o", "thickness", "amplitude_surface", "correlation_length", "specular", "sigma",
+    "tau_o", "thickness", "amplitude_surface", "correlation_length", "specular",
+    "surface_fresnel", "sigma",
     "lobes", "sampling", "energy", "wavelength", "rgb_wavelengths",
 )
 

@@ -81,7 +81,8 @@ def apply_properties(scene, properties: dict) -> tuple[list[str], list[str]]:
 
 
 #: Property names given as strings in a scene description (the others are numbers)
-_STRING_PROPERTIES = ("grains", "mixing", "material", "specular", "lobes", "sampling", "energy")
+_STRING_PROPERTIES = ("grains", "mixing", "material", "specular", "surface_fresnel", "lobes",
+                      "sampling", "energy")
 
 
 def _xml_property(name: str, value):

@@ -13,6 +13,7 @@
 #include <array>
 #include <tuple>
 
+#include "powder_fresnel.h"
 #include "powder_lobes.h"
 #include "powder_optics.h"
 
@@ -354,6 +355,14 @@ Dry powder (:monosp:`powder`)
    - |string|
    - Surface model: ``harvey_shack`` (Default) or ``gaussian``
 
+ * - surface_fresnel
+   - |string|
+   - Reflectance factor of the surface term: ``none`` (Default: Eq. 23 as published) or
+     ``fresnel``: both surface models times F(c) / F(1), the unpolarised Fresnel
+     reflectance of the grain material (``material``, or ``eta`` and ``k``) at the half
+     vector's cosine c, normalised to normal incidence (docs/model.md). With ``tau_o``
+     given, needs ``eta`` and ``k`` or ``material``.
+
  * - sigma
    - |float| or |texture|
    - Half width of the Gaussian surface lobe in radians, Gaussian only (Default: 0.1,
@@ -467,6 +476,13 @@ public:
         m_specular = powder_param::read_choice<2>(props, "specular",
                                                   { "harvey_shack", "gaussian" }) == 0
                          ? SpecularModel::HarveyShack : SpecularModel::Gaussian;
+        m_surface_fresnel = powder_param::read_choice<2>(props, "surface_fresnel",
+                                                         { "none", "fresnel" }) == 1;
+        if (m_surface_fresnel && m_tau_given && !props.has_property("eta") &&
+            !props.has_property("material"))
+            Throw("powder: property \"surface_fresnel\" = \"fresnel\" needs the grain "
+                  "material's index, which \"tau_o\" given alone does not fix: give \"eta\" "
+                  "and \"k\" (or \"material\") too, or surface_fresnel = \"none\"");
 
         parse_lobes(props.get<std::string>("lobes", "all"));
 
@@ -537,6 +553,9 @@ public:
             m_tau_table_constant =
                 std::all_of(tau.begin(), tau.end(), [&](ScalarFloat t) { return t == tau[0]; });
         }
+
+        if (m_surface_fresnel)
+            set_fresnel_index();
 
         // Components: volume (diffuse), coherent back-scattering and surface (glossy)
         if (m_single || m_multiple) {
@@ -886,6 +905,8 @@ public:
             << "  thickness = " << show(powder_param::Thickness) << " [um]," << std::endl
             << "  specular = " << (m_specular == SpecularModel::HarveyShack
                                        ? "harvey_shack" : "gaussian") << "," << std::endl
+            << "  surface_fresnel = " << (m_surface_fresnel ? "fresnel" : "none") << ","
+            << std::endl
             << "  amplitude_surface = " << show(powder_param::AmplitudeSurface) << ","
             << std::endl;
         if (m_specular == SpecularModel::HarveyShack)
@@ -989,6 +1010,65 @@ private:
             return lookup_grains(si, active).second;
         else
             return m_tau_channels;
+    }
+
+    /// surface_fresnel: F(c) / F(1) per channel for the grain index at the channel
+    /// wavelengths (RGB, mono: per channel; spectral: interpolated on the 1 nm grid, as
+    /// tau_o) and the cosine c at the half vector
+    UnpolarizedSpectrum surface_fresnel_factor(const SurfaceInteraction3f &si, const Float &c,
+                                               Mask active) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum t = table_position(si), out(0.f);
+            for (size_t ch = 0; ch < dr::size_v<UnpolarizedSpectrum>; ++ch) {
+                UInt32 i0 = UInt32(dr::floor(t[ch]));
+                auto v = dr::gather<dr::Array<Float, 4>>(m_records.fresnel, i0, active);
+                Float w = t[ch] - Float(i0), eta = dr::lerp(v[0], v[1], w),
+                      k = dr::lerp(v[2], v[3], w);
+                out[ch] = powder::fresnel_unpolarized(c, eta, k) /
+                          powder::fresnel_normal(eta, k);
+            }
+            return out;
+        } else {
+            DRJIT_MARK_USED(si);
+            DRJIT_MARK_USED(active);
+            return powder::fresnel_unpolarized(UnpolarizedSpectrum(c), m_fresnel_eta,
+                                               m_fresnel_k) * m_fresnel_inv_f1;
+        }
+    }
+
+    /// surface_fresnel: the grain index n + i k at the table wavelengths (m_index), as
+    /// per-channel constants (RGB, mono) or interpolation records (spectral). The factor
+    /// is undefined where the interface reflects nothing at normal incidence (m = 1)
+    void set_fresnel_index() {
+        std::vector<ScalarFloat> eta, k;
+        for (size_t i = 0; i < m_index.size(); ++i) {
+            const std::complex<double> &m = m_index[i];
+            if (powder::fresnel_normal(m.real(), m.imag()) <= 0.0)
+                Throw("powder: property \"surface_fresnel\" = \"fresnel\": the grain index is "
+                      "1 at %g nm, where the smooth interface reflects nothing (F(1) = 0) "
+                      "and the factor F(c) / F(1) is undefined", m_table_wavelengths[i]);
+            eta.push_back((ScalarFloat) m.real());
+            k.push_back((ScalarFloat) m.imag());
+        }
+        if constexpr (is_spectral_v<Spectrum>) {
+            size_t n = eta.size();
+            std::vector<ScalarFloat> packed(4 * n);
+            for (size_t i = 0; i < n; ++i) {
+                size_t j = std::min(i + 1, n - 1);
+                packed[4 * i + 0] = eta[i];
+                packed[4 * i + 1] = eta[j];
+                packed[4 * i + 2] = k[i];
+                packed[4 * i + 3] = k[j];
+            }
+            m_records.fresnel = dr::load<FloatStorage>(packed.data(), packed.size());
+        } else {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                m_fresnel_eta[c] = eta[c];
+                m_fresnel_k[c] = k[c];
+                m_fresnel_inv_f1[c] =
+                    (ScalarFloat) (1.0 / powder::fresnel_normal((double) eta[c], (double) k[c]));
+            }
+        }
     }
 
     /// Spectral variants: each channel's position in the 1 nm grain tables (entry
@@ -1971,7 +2051,7 @@ private:
         pack_energy_norm();
     }
 
-    /// Entries per record of m_norm_packed: the 2 incidence nodes bracketing mu_i of every
+    /// Entries per record of m_records.norm: the 2 incidence nodes bracketing mu_i of every
     /// channel (RGB: 6, padded to 8; mono: 2), or of 2 x 2 (wavelength, incidence) nodes
     /// (spectral: 4, one record per channel)
     static constexpr size_t NormPacket =
@@ -1997,14 +2077,14 @@ private:
             }
         if constexpr (dr::is_jit_v<Float>) {
             using UInt32Storage = DynamicBuffer<UInt32>;
-            m_norm_packed = dr::gather<FloatStorage>(
+            m_records.norm = dr::gather<FloatStorage>(
                 m_norm, dr::load<UInt32Storage>(src.data(), src.size()));
-            dr::make_opaque(m_norm_packed);
+            dr::make_opaque(m_records.norm);
         } else {
             std::vector<ScalarFloat> packed(src.size());
             for (size_t i = 0; i < src.size(); ++i)
                 packed[i] = m_norm[src[i]];
-            m_norm_packed = dr::load<FloatStorage>(packed.data(), packed.size());
+            m_records.norm = dr::load<FloatStorage>(packed.data(), packed.size());
         }
     }
 
@@ -2024,12 +2104,12 @@ private:
                                    (ScalarFloat) NormWavelengths - 1.001f);
                 UInt32 j0 = UInt32(s);
                 Float v = s - Float(j0);
-                Packet e = dr::gather<Packet>(m_norm_packed, j0 * NormMu + k0, active);
+                Packet e = dr::gather<Packet>(m_records.norm, j0 * NormMu + k0, active);
                 out[c] = dr::lerp(dr::lerp(e[0], e[1], w), dr::lerp(e[2], e[3], w), v);
             }
         } else {
             DRJIT_MARK_USED(lam);
-            Packet e = dr::gather<Packet>(m_norm_packed, k0, active);
+            Packet e = dr::gather<Packet>(m_records.norm, k0, active);
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
                 out[c] = dr::lerp(e[2 * c], e[2 * c + 1], w);
         }
@@ -2189,6 +2269,9 @@ private:
                 S = as * dr::InvSqrtTwoPi<ScalarFloat> / sigma *
                     powder::exp_neg(dr::square(theta) / (2.f * dr::square(sigma)));
             }
+            if (m_surface_fresnel) // surface_fresnel: S F(c) / F(1), c = wi . h
+                S *= surface_fresnel_factor(si, powder::half_vector_cosine(dr::dot(wi, wo)),
+                                            active);
             result += S;
         }
 
@@ -2255,6 +2338,17 @@ private:
             width_s = value(powder_param::Sigma);
             if (lobes.surface)
                 e_surface = as * width_s * dr::SqrtTwoPi<ScalarFloat> * mu;
+        }
+
+        // surface_fresnel: the lobe's energy follows the factor F(mu_i) / F(1) of the
+        // mirror direction (channel mean), so that its share of the samples grows with it
+        // towards grazing light
+        if (lobes.surface && m_surface_fresnel) {
+            UnpolarizedSpectrum f = dr::detach(surface_fresnel_factor(si, mu, true));
+            Float mean = 0.f;
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                mean += f[c];
+            e_surface *= mean * (1.f / (ScalarFloat) dr::size_v<UnpolarizedSpectrum>);
         }
 
         Float total = e_diffuse + e_coherent + e_surface;
@@ -2595,12 +2689,22 @@ private:
     FloatStorage m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
         m_qsca2_table;
     SpecularModel m_specular;
+    bool m_surface_fresnel = false; ///< surface_fresnel = "fresnel"
+    /// surface_fresnel: RGB and mono: eta, k and 1 / F(1) per channel (literal constants:
+    /// they never change after construction); spectral: records (eta[i], eta[i + 1], k[i],
+    /// k[i + 1]) of the 1 nm grid (set_fresnel_index)
+    UnpolarizedSpectrum m_fresnel_eta = 0.f, m_fresnel_k = 0.f, m_fresnel_inv_f1 = 0.f;
     bool m_cosine_only = false;
     bool m_conserving = false;      ///< energy = "conserving"
     /// energy = "conserving": the factor N per wavelength (RGB/mono: channel) and mu_i
     /// node, at index wavelength * NormMu + node (update_energy_norm)
     FloatStorage m_norm;
-    FloatStorage m_norm_packed; ///< m_norm as records for energy_norm (pack_energy_norm)
+    /// Records read by eval (one traversal entry for both): m_norm as records for
+    /// energy_norm (pack_energy_norm), and the surface_fresnel index (set_fresnel_index)
+    struct Records {
+        FloatStorage norm, fresnel;
+        DRJIT_STRUCT(Records, norm, fresnel)
+    } m_records;
     bool m_single, m_multiple, m_coherent, m_surface;
     bool m_finite_thickness = false;
     uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
@@ -2612,7 +2716,7 @@ private:
                    m_agglomerate_fill, m_rho_mean, m_tau_mean,
                    m_rho_channels, m_tau_channels, m_k0_kappa, m_packed, m_volume, m_volume_table,
                    m_rho_table, m_tau_table, m_qext_table, m_qsca_table, m_qext2_table,
-                   m_qsca2_table, m_norm_packed, m_grain_records)
+                   m_qsca2_table, m_records, m_grain_records)
 };
 
 NAMESPACE_END(mitsuba)
