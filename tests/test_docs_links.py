@@ -17,10 +17,6 @@ ROOT = Path(__file__).resolve().parents[1]
 #: file does not name it itself)
 OLD_SPEC = "MODEL" + ".md"
 
-#: Left out of the check for now: the C++ sources still name the old file in comments and in a
-#: load-time warning, and another change is editing src/bsdfs/powder.cpp. Remove this entry
-#: once the strings in src/ point to docs/model.md.
-EXCLUDED_PREFIXES = ("src/",)
 
 MARKDOWN = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md"))]
 
@@ -58,8 +54,6 @@ def test_no_file_names_a_specification_the_repository_lacks():
         pytest.skip(f"the repository contains a file named {OLD_SPEC}")
     offenders = []
     for name in files:
-        if name.startswith(EXCLUDED_PREFIXES):
-            continue
         path = ROOT / name
         if not path.is_file():  # deleted in the working tree
             continue
@@ -72,12 +66,6 @@ def test_no_file_names_a_specification_the_repository_lacks():
     assert not offenders, (f"{len(offenders)} lines name {OLD_SPEC}, which is not in the "
                            "repository (the specification is docs/model.md):\n"
                            + "\n".join(offenders))
-
-
-def test_excluded_folders_still_exist():
-    """The exclusion above is for files that exist (drop it when src/ is fixed)."""
-    for prefix in EXCLUDED_PREFIXES:
-        assert (ROOT / prefix).is_dir(), prefix
 
 
 def github_slug(heading: str) -> str:

@@ -342,6 +342,11 @@ GRAZING = _grazing((80.0, 83.0, 86.0, 88.0, 89.0), (3.0, 10.0), ("all", "surface
                                             "lobes": "coherent,surface"}, 86.0),
     ("coherent_86", {**GRAZING_BASE, "lobes": "coherent"}, 86.0),
 ]
+#: the same with the surface term's Fresnel factor (surface_fresnel = fresnel, PTFE's index):
+#: the lobes' shapes are unchanged, their weights follow F(mu_i) / F(1), up to 85 deg
+FRESNEL = {"surface_fresnel": "fresnel", "eta": 1.35, "k": 0.0}
+GRAZING += [(f"fresnel_{name}", {**props, **FRESNEL}, theta_i)
+            for name, props, theta_i in _grazing((80.0, 85.0), (3.0, 10.0), ("all", "surface"))]
 #: every incidence 80-89 and l_c 1-10 um (run with --runslow)
 GRAZING_DENSE = _grazing(tuple(np.arange(80.0, 90.0)), (1.0, 2.0, 5.0, 8.0, 10.0),
                          ("all", "surface", "coherent,surface"))

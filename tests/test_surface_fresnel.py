@@ -2,7 +2,7 @@
 reflectance of the grain material at the half vector normalised to normal incidence
 (docs/model.md, "Surface reflectance factor").
 
-Against MODEL.md's reference values and the independent complex-arithmetic oracle
+Against docs/model.md's reference values and the independent complex-arithmetic oracle
 (tests/reference.py: fresnel_unpolarized, surface_fresnel_factor) in five variants; the
 rest of the BSDF unchanged; sample weights = eval / pdf; gradients against finite
 differences; the bad-input errors; the surface term's energy bound."""
@@ -26,7 +26,7 @@ from helpers import (
 from reference import Params, brdf_terms, fresnel_unpolarized, surface_fresnel_factor
 
 VARIANTS = ["scalar_rgb", "scalar_spectral", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
-#: MODEL.md's reference values: index -> {angle (deg): F}
+#: docs/model.md's reference values: index -> {angle (deg): F}
 MODEL_F = {1.35: {0.0: 0.022182, 60.0: 0.062869, 80.0: 0.353341},
            3.0 + 0.1j: {0.0: 0.250468, 80.0: 0.433172}}
 
@@ -58,7 +58,7 @@ def test_factor_equals_model_md_ratios(variant, m):
            / evaluate(mi.load_dict(common), wi, wo, lam))
     f = MODEL_F[m]
     want = np.array([f[a] / f[0.0] for a in angles])
-    # MODEL.md's F values have 6 digits: their ratios are known to ~3e-6 relative
+    # docs/model.md's F values have 6 digits: their ratios are known to ~3e-6 relative
     np.testing.assert_allclose(got, np.broadcast_to(want[:, None], got.shape), rtol=1e-5)
     oracle = fresnel_unpolarized(np.cos(np.radians(angles)), m) / fresnel_unpolarized(1.0, m)
     np.testing.assert_allclose(got, np.broadcast_to(oracle[:, None], got.shape), rtol=2e-6)
@@ -261,3 +261,32 @@ def test_surface_energy_bound():
             albedo = [float(evaluate(mi.load_dict({**base, "surface_fresnel": f}), wi, wo)
                             [:, 1].sum() * cell) for f in ("none", "fresnel")]
             assert albedo[0] * (1 - 1e-5) <= albedo[1] <= albedo[0] * inv_f1, (lc, theta)
+
+
+def test_fit_and_render_pass_the_option_on(tmp_path, capsys):
+    """fit --set surface_fresnel=fresnel writes it into fit.json; render --params passes it
+    (and the index) to the scene's powder."""
+    import json
+    from pathlib import Path
+
+    from mitsuba_powder.cli import main
+
+    params = tmp_path / "truth.json"
+    params.write_text(json.dumps({"albedo": 0.9, "eta": 1.35, "k": 0.0,
+                                  "amplitude_surface": 5e-4, "correlation_length": 1.0,
+                                  "surface_fresnel": "fresnel"}))
+    data = tmp_path / "d.csv"
+    assert main(["simulate", "--params", str(params), "--protocol", "shadows",
+                 "--noise", "0.01", "--out", str(data)]) == 0
+    out = tmp_path / "fit"
+    assert main(["fit", str(data), "--free", "albedo,amplitude_surface,correlation_length",
+                 "--set", "eta=1.35", "--set", "k=0", "--set", "surface_fresnel=fresnel",
+                 "--starts", "4", "--figures", "none", "--out", str(out)]) == 0
+    fitted = json.loads((out / "fit.json").read_text())["parameters"]
+    assert fitted["surface_fresnel"] == "fresnel"
+    assert fitted["amplitude_surface"] == pytest.approx(5e-4, rel=0.2)
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"
+    capsys.readouterr()
+    assert main(["render", str(scene), "-o", str(tmp_path / "r.exr"), "-D", "res_x=16",
+                 "-D", "res_y=8", "-D", "spp=1", "--params", str(out / "fit.json")]) == 0
+    assert "surface_fresnel = fresnel" in capsys.readouterr().out

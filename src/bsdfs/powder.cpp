@@ -68,7 +68,7 @@ size_t read_choice(const Properties &props, const char *name,
 }
 
 /**
- * The float parameters of the model (MODEL.md, "Parameters"). One row each drives
+ * The float parameters of the model (docs/model.md, "Parameters"). One row each drives
  * reading the property (default, range), the range check after an edit through
  * mi.traverse (parameters_changed), the traversal key and whether it is
  * differentiable; tests/test_params_doc.py checks that the doc comment above the
@@ -260,7 +260,7 @@ Dry powder (:monosp:`powder`)
 
  * - grains
    - |string|
-   - What scatters, without ``albedo`` (MODEL.md, "Grain models"): ``sphere`` (Default:
+   - What scatters, without ``albedo`` (docs/model.md, "Grain models"): ``sphere`` (Default:
      isolated Mie spheres of radius ``radius``), ``agglomerate`` (Mie spheres of radius
      ``agglomerate_radius`` packed with crystallites of radius ``radius``; effective index
      by ``mixing``) or ``slab`` (Hapke's equivalent slab for grains of size 2 ``radius``
@@ -408,7 +408,7 @@ Mitsuba's own; constant parameters keep their precomputed fast paths.
 
 The dry-powder reflectance model of Gerardin, Martinetto and Holzschuch
 (JOSA A 40(9), 2023), Eq. 23, with the conventions and corrections of the
-project's ``MODEL.md``:
+project's docs/model.md:
 
     f = A_v (L1 + L2 + C) / (4 pi) + S
 
@@ -1155,7 +1155,7 @@ private:
     }
 
     /// The grain model (`grains`, `mixing`) and the properties each model requires or
-    /// rejects (MODEL.md, "Grain models")
+    /// rejects (docs/model.md, "Grain models")
     void read_grain_model(const Properties &props) {
         static constexpr const char *Models[3] = { "sphere", "agglomerate", "slab" };
         size_t model = powder_param::read_choice<3>(props, "grains",
@@ -1208,12 +1208,12 @@ private:
                 "powder: crystallites of radius %g um have the size parameter 2 pi r |n + ik| "
                 "/ lambda = %.3g at %g nm, above %g (the limit of an effective-medium mixing "
                 "rule) at %zu of the %zu wavelengths evaluated, the longest %g nm; the "
-                "agglomerate albedo is outside the model's validity there (MODEL.md, \"Grain "
+                "agglomerate albedo is outside the model's validity there (docs/model.md, \"Grain "
                 "models\")", value_of(m_radius), x[worst], m_table_wavelengths[worst],
                 CrystalliteLimit, over, x.size(), longest);
     }
 
-    /// Largest crystallite size parameter for which a mixing rule holds (MODEL.md)
+    /// Largest crystallite size parameter for which a mixing rule holds (docs/model.md)
     static constexpr double CrystalliteLimit = 0.5;
 
     /// Optical constants from `eta`/`k` or `material` (name or YAML file)
@@ -1286,7 +1286,7 @@ private:
               "value=\"400:2.5, 700:2.9\"/>", name, name);
     }
 
-    /// Mie efficiencies, rho = Q_sca / Q_ext (two populations: MODEL.md), and,
+    /// Mie efficiencies, rho = Q_sca / Q_ext (two populations: docs/model.md), and,
     /// when gradients are tracked on a grain parameter, rho's first derivatives
     /// with respect to the radii and fraction, attached to the AD graph as tangents.
     /// The table (powder_optics.h) spreads the wavelengths over Dr.Jit's threads.
@@ -1540,7 +1540,7 @@ private:
     }
 
     /// The albedo of spatially varying grains per lane: rho = sum_j (f_j / r_j)
-    /// Q_sca,j / sum_j (f_j / r_j) Q_ext,j (MODEL.md; slab: Q_ext = 1, Q_sca = rho)
+    /// Q_sca,j / sum_j (f_j / r_j) Q_ext,j (docs/model.md; slab: Q_ext = 1, Q_sca = rho)
     UnpolarizedSpectrum grain_texture_albedo(const SurfaceInteraction3f &si,
                                              Mask active) const {
         Float r1 = at(table_param(), si, active);
@@ -1556,7 +1556,7 @@ private:
 
     // ---------------------------------------------------------- the model
 
-    /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), MODEL.md Eq. 10;
+    /// k0 / kappa = 2 pi / (lambda kappa) per channel (lambda in um), docs/model.md Eq. 10;
     /// precomputed in RGB and mono variants, where lambda is fixed, unless the
     /// extinction is a texture
     /// (inv_lam: 1 / lambda per channel, shared with the surface lobe: one division per
@@ -1573,9 +1573,9 @@ private:
     struct VolumeConstants {
         UnpolarizedSpectrum rho,
             rho2_3, ///< 3 rho^2, the prefactor of L2 and C
-            c0_sq,  ///< c0^2 = 3 (1 - rho) (1 - rho g), MODEL.md Eq. 10e with alpha = 0
+            c0_sq,  ///< c0^2 = 3 (1 - rho) (1 - rho g), docs/model.md Eq. 10e with alpha = 0
             c0,
-            s_c0,   ///< s(c0), MODEL.md Eq. 9b
+            s_c0,   ///< s(c0), docs/model.md Eq. 9b
             tau;    ///< tau_o
         DRJIT_STRUCT(VolumeConstants, rho, rho2_3, c0_sq, c0, s_c0, tau)
     };
@@ -1615,7 +1615,7 @@ private:
      * Spectral variants, an albedo that is one number and tau_o from the Fresnel table:
      * whether the layer is optically thick at every wavelength, x0 = 2 c0 tau_o >=
      * ThickLimit at every node of the table (c0 from the albedo and g, tau_o its smallest
-     * entry). s(c) = (1 - exp(-2 c tau_o)) / (2 c) (MODEL.md Eq. 9b) depends on tau_o
+     * entry). s(c) = (1 - exp(-2 c tau_o)) / (2 c) (docs/model.md Eq. 9b) depends on tau_o
      * only through exp(-2 c tau_o) <= exp(-x0) <= 2^-18 (3.8e-6) for every c >= c0: eval
      * takes s(c) = 1 / (2 c), so that neither L2 nor C depends on tau_o, the volume
      * constants are the same for every wavelength and are computed once per parameter
@@ -2117,7 +2117,7 @@ private:
     }
 
     /**
-     * The volume terms of MODEL.md Eq. 9 (without A_v / (4 pi)) for the enabled lobes:
+     * The volume terms of docs/model.md Eq. 9 (without A_v / (4 pi)) for the enabled lobes:
      * (L1 + L2, C), the ladder and the cyclical (coherent) term, at the directions wi, wo
      * (mu_i, mu_o > 0), with the volume constants k and k0 / kappa per channel; g,
      * kappa and d of the interaction si.
@@ -2128,11 +2128,11 @@ private:
                  const UnpolarizedSpectrum &k0_kappa, Mask active) const {
         Float mu_i = Frame3f::cos_theta(wi), mu_o = Frame3f::cos_theta(wo),
               mu_sum = mu_i + mu_o, mu_prod = mu_i * mu_o,
-              h = mu_prod / mu_sum; // = 1 / (2 v), MODEL.md Eq. 10b
+              h = mu_prod / mu_sum; // = 1 / (2 v), docs/model.md Eq. 10b
         UnpolarizedSpectrum ladder(0.f), coherent(0.f);
 
         if (lobes.single) {
-            /* L1, MODEL.md Eq. 9a:
+            /* L1, docs/model.md Eq. 9a:
                rho P(Theta) / (mu_i + mu_o) [1 - exp(-kappa d (1/mu_i + 1/mu_o))]
                with the Henyey-Greenstein P = (1 - g^2) / t^(3/2),
                t = 1 + g^2 - 2 g cos(Theta), cos(Theta) = -dot(wi, wo),
@@ -2163,7 +2163,7 @@ private:
         }
 
         if (lobes.multiple) {
-            // L2, MODEL.md Eq. 9b (corrected):
+            // L2, docs/model.md Eq. 9b (corrected):
             // 3 rho^2 [s(c0) + mu_i mu_o / (mu_i + mu_o)] / ((1 + c0 mu_i) (1 + c0 mu_o))
             UnpolarizedSpectrum L2 = k.rho2_3 * (k.s_c0 + h) /
                                      ((1.f + k.c0 * mu_i) * (1.f + k.c0 * mu_o));
@@ -2171,7 +2171,7 @@ private:
         }
 
         if (lobes.coherent) {
-            /* C, MODEL.md Eq. 9c with Eq. 10:
+            /* C, docs/model.md Eq. 9c with Eq. 10:
                3 rho^2 [1/(2v) + s(c)] / (mu_i mu_o ((c + v)^2 + u^2)),
                alpha = (k0 / kappa) |wo_xy - wi_xy|, c = sqrt(c0^2 + alpha^2),
                u = (k0 / kappa) (mu_i - mu_o), 1/(2v) = h. The denominator written
@@ -2211,7 +2211,7 @@ private:
     }
 
     /**
-     * The BRDF (without the cosine factor) of MODEL.md, Eq. 23, for the enabled
+     * The BRDF (without the cosine factor) of docs/model.md, Eq. 23, for the enabled
      * lobes: f = A_v (L1 + L2 + C) / (4 pi) + S. Outside `active`, the cosines
      * mu_i and mu_o are replaced by 1, so that no lane divides by 0 (every term is
      * finite for finite x and y components); the values of those lanes are
@@ -2247,7 +2247,7 @@ private:
             UnpolarizedSpectrum S;
             Float as = at(powder_param::AmplitudeSurface, si, active);
             if (m_specular == SpecularModel::HarveyShack) {
-                /* S, MODEL.md Eq. 21-22 (Harvey-Shack, Gaussian PSD):
+                /* S, docs/model.md Eq. 21-22 (Harvey-Shack, Gaussian PSD):
                    A_s' (4 pi^2 / lam^4) (mu_i + mu_o)^2 pi l_c^2 exp(-pi^2 l_c^2 f_s^2),
                    f_s = |wo_xy + wi_xy| / lam */
                 Float sx = wo.x() + wi.x(), sy = wo.y() + wi.y(),
@@ -2262,7 +2262,7 @@ private:
                 UnpolarizedSpectrum inv_lam2 = dr::square(inv_lam);
                 S = prefactor * dr::square(inv_lam2) * powder::exp2_neg(t * inv_lam2);
             } else {
-                /* S, MODEL.md Eq. 20 (Gaussian in the angle theta_s to the mirror
+                /* S, docs/model.md Eq. 20 (Gaussian in the angle theta_s to the mirror
                    direction): A_s / (sigma sqrt(2 pi)) exp(-theta_s^2 / (2 sigma^2)) */
                 Float theta = mirror_angle(wi, wo),
                       sigma = at(powder_param::Sigma, si, active);
@@ -2390,7 +2390,7 @@ private:
     }
 
     /// Surface lobe. Harvey-Shack: a 2D Gaussian of wo_xy + wi_xy (the spatial
-    /// frequency times lambda, MODEL.md Eq. 21-22) truncated to the projected disc
+    /// frequency times lambda, docs/model.md Eq. 21-22) truncated to the projected disc
     /// chord by chord, moved inwards to follow the factor (mu_i + mu_o)^2; Gaussian: a
     /// Gaussian in the cylindrical equal-area coordinates about the axis perpendicular
     /// to the plane of incidence, truncated at the horizon (powder_lobes.h)

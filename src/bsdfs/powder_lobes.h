@@ -109,7 +109,7 @@ template <typename T> T one_minus_exp_neg_over_x(const T &x) {
                       (1.f - exp_neg(dr::minimum(xl, 20.f))) / xl);
 }
 
-/// MODEL.md, Eq. 9b: s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
+/// docs/model.md, Eq. 9b: s(c) = (1 - exp(-2 c tau_o)) / (2 c), equal to tau_o at c = 0
 template <typename T> T s_func(const T &c, const T &tau) {
     return tau * one_minus_exp_neg_over_x(2.f * c * tau);
 }

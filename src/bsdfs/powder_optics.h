@@ -10,11 +10,11 @@
  *    (Bohren & Huffman, with downward recurrences for the logarithmic
  *    derivatives D_n(mx) and D_n(x));
  *  - the extrapolation ratio tau_o from the Fresnel reflectance of the grain
- *    material (Zhu, Pine & Weitz 1991, MODEL.md);
- *  - the grain models (MODEL.md, "Grain models"): isolated spheres, agglomerates
+ *    material (Zhu, Pine & Weitz 1991, docs/model.md);
+ *  - the grain models (docs/model.md, "Grain models"): isolated spheres, agglomerates
  *    of crystallites (Bruggeman or Maxwell Garnett effective index) and Hapke's
  *    equivalent slab;
- *  - the albedo table over wavelength of one or two grain populations (MODEL.md,
+ *  - the albedo table over wavelength of one or two grain populations (docs/model.md,
  *    "Single-scattering albedo rho from the grains"), with the derivatives of rho
  *    with respect to the fittable grain parameters, rows spread over a caller's
  *    parallel-for.
@@ -254,7 +254,7 @@ inline double fresnel_internal(double n, double mu) {
 
 /**
  * tau_o = (2/3) (1 + Rbar) / (1 - Rbar), Rbar = (3 C2 + 2 C1) / (3 C2 - 2 C1 + 2),
- * C_j = int_0^1 R(mu) mu^j dmu (MODEL.md, corrected sign). The total-reflection
+ * C_j = int_0^1 R(mu) mu^j dmu (docs/model.md, corrected sign). The total-reflection
  * part is integrated exactly; the rest with Simpson's rule in t, where
  * mu = mu_c + (1 - mu_c) t^2 removes the square-root kink at the critical angle.
  */
@@ -279,7 +279,7 @@ inline double tau_o_fresnel(double n) {
 
 // ------------------------------------------------------------ grain models
 
-/// What scatters in the powder (MODEL.md, "Grain models"): isolated Mie spheres,
+/// What scatters in the powder (docs/model.md, "Grain models"): isolated Mie spheres,
 /// agglomerates of crystallites (effective medium), or Hapke's equivalent slab
 enum class GrainModel { Sphere, Agglomerate, Slab };
 
@@ -315,7 +315,7 @@ inline std::complex<double> effective_index(std::complex<double> m, double f, Mi
 }
 
 /// Hapke's equivalent-slab albedo and its derivative with respect to the grain
-/// size D (um) for index m = n + ik (n > 1) at wavelength wl_um (MODEL.md)
+/// size D (um) for index m = n + ik (n > 1) at wavelength wl_um (docs/model.md)
 inline std::pair<double, double> slab_albedo(std::complex<double> m, double d_um,
                                              double wl_um) {
     const double pi = 3.14159265358979323846;
@@ -335,7 +335,7 @@ inline std::pair<double, double> slab_albedo(std::complex<double> m, double d_um
 
 // ------------------------------------------------------------ albedo table
 
-/// The grains (MODEL.md): radius r1 (um), and with `two` a second radius r2 (um)
+/// The grains (docs/model.md): radius r1 (um), and with `two` a second radius r2 (um)
 /// of volume fraction f2; for agglomerates their radius (um), fill and mixing rule
 /// (r1 is then the crystallite radius, which does not enter the albedo)
 struct Grains {
@@ -395,7 +395,7 @@ inline void check_slab_index(std::complex<double> m, double wl_nm) {
 }
 
 /// One population of radius r (um): Mie spheres, or for `slab` grains of size
-/// D = 2 r with Q_ext = 1 and Q_sca = rho of Hapke's slab (MODEL.md); as
+/// D = 2 r with Q_ext = 1 and Q_sca = rho of Hapke's slab (docs/model.md); as
 /// population_efficiencies (the slab's derivative is analytic)
 inline std::array<double, 4> population(const Grains &g, double r, double wl_nm,
                                         std::complex<double> m, const char *name,

@@ -152,7 +152,7 @@ NB_MODULE(_optics, m) {
           "The plugin's albedo table in double precision: (rho per wavelength, per wavelength "
           "[d/d radius, d/d radius2, d/d fraction2, d/d agglomerate_radius, "
           "d/d agglomerate_fill]) for grains = \"sphere\", \"agglomerate\" or \"slab\" "
-          "(MODEL.md, \"Grain models\"); radii in um, wavelengths in nm, index n + ik per "
+          "(docs/model.md, \"Grain models\"); radii in um, wavelengths in nm, index n + ik per "
           "wavelength.");
 
     m.def("load_optical_constants",
