@@ -304,3 +304,29 @@ def test_compare_photo_refuses_to_write_over_the_photo(tmp_path, capsys):
                  "--out", str(tmp_path)]) == 2
     assert "is an input file" in capsys.readouterr().err
     assert snapshot(tmp_path) == before
+
+
+def test_relight_into_the_folder_that_holds_the_lights(tmp_path, maps, capsys):
+    """Lights in an .lp inside the output folder: the images it names that do not exist yet
+    are written there and the .lp is left as it is; once they exist (they could be
+    photographs), a second run into the same folder is refused."""
+    out = tmp_path / "relit"
+    out.mkdir()
+    lp = out / "l.lp"
+    lp.write_text("2\na.png 0 0 1\nb.png 0.2 0 1\n")
+    kept = lp.read_bytes()
+    assert main(["relight", str(maps), "--lp", str(lp), "--out", str(out)]) == 0
+    assert lp.read_bytes() == kept and (out / "a.png").is_file()
+    before = snapshot(out)
+    assert main(["relight", str(maps), "--lp", str(lp), "--out", str(out)]) == 2
+    assert "is an input file" in capsys.readouterr().err
+    assert snapshot(out) == before
+
+
+def test_an_output_folder_that_is_a_file_is_a_clean_error(tmp_path, maps, capsys):
+    (tmp_path / "f").write_text("x")
+    lp = tmp_path / "l.lp"
+    lp.write_text("1\na.png 0 0 1\n")
+    assert main(["relight", str(maps), "--lp", str(lp), "--out", str(tmp_path / "f")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert (tmp_path / "f").read_text() == "x"

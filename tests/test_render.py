@@ -140,7 +140,7 @@ def test_render_applies_fitted_parameters(tmp_path, capsys):
     from mitsuba_powder.render import scene_with_properties
 
     text, count, removed = scene_with_properties(SCENE, {"eta": 1.35, "k": 0.0})
-    assert count == 1 and '<float name="eta" value="1.35"' in text and removed == ["albedo"]
+    assert count == 1 and '<float name="eta" value="1.35"' in text and removed == []
     # grains given without an albedo: the scene's albedo goes, so the albedo is Mie's
     text, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "extinction": 1.0})
     assert removed == ["albedo"] and '<rgb name="albedo"' not in text
@@ -164,13 +164,17 @@ def test_apply_properties_after_loading():
                                rtol=1e-5, atol=1e-7)
 
 
-def test_render_with_an_included_powder_needs_allow_missing(tmp_path, capsys):
-    """A scene whose powder BSDF is in an included file: a property traverse does not expose
-    is an error unless --allow-missing, which names it."""
-    (tmp_path / "powder.xml").write_text(
-        '<scene version="3.0.0"><bsdf type="powder" id="p"/></scene>\n')
+def test_render_sets_properties_on_included_powders(tmp_path, capsys):
+    """A powder BSDF from an <include> gets the properties too (the include is read into the
+    description first), and its relative textures still resolve beside the included file."""
+    (tmp_path / "sub").mkdir()
+    use_variant("scalar_rgb")
+    mi.Bitmap(np.full((2, 2, 3), 0.5, np.float32)).write(str(tmp_path / "sub" / "tex.exr"))
+    (tmp_path / "sub" / "powder.xml").write_text(
+        '<scene version="3.0.0"><bsdf type="powder" id="p"><texture type="bitmap" '
+        'name="albedo"><string name="filename" value="tex.exr"/></texture></bsdf></scene>\n')
     (tmp_path / "main.xml").write_text("""<scene version="3.0.0">
-  <include filename="powder.xml"/>
+  <include filename="sub/powder.xml"/>
   <integrator type="direct"/>
   <sensor type="orthographic"><film type="hdrfilm"><integer name="width" value="4"/>
     <integer name="height" value="4"/></film></sensor>
@@ -178,16 +182,57 @@ def test_render_with_an_included_powder_needs_allow_missing(tmp_path, capsys):
   <emitter type="directional"><vector name="direction" value="0, 0, -1"/></emitter>
 </scene>
 """)
+    from mitsuba_powder.render import scene_with_properties
+
+    text, count, _ = scene_with_properties(tmp_path / "main.xml", {"lobes": "single"})
+    assert count == 1 and 'value="single"' in text
     out = tmp_path / "i.exr"
-    args = ["render", str(tmp_path / "main.xml"), "-o", str(out), "--spp", "1", "--set",
-            "extinction=2", "--set", "lobes=single"]
-    assert main(args) == 2
-    err = capsys.readouterr().err
-    assert "lobes cannot be set" in err and "--allow-missing" in err and not out.exists()
-    assert main(args + ["--allow-missing"]) == 0
-    text = capsys.readouterr().out
-    assert "set on every powder BSDF: extinction = 2" in text
-    assert "lobes" in text.split("NOT applied")[1]
+    assert main(["render", str(tmp_path / "main.xml"), "-o", str(out), "--spp", "1", "--set",
+                 "extinction=2", "--set", "lobes=single"]) == 0
+    assert "set on every powder BSDF: extinction = 2, lobes = single" in capsys.readouterr().out
+    # the included file's texture is an input: not overwritten
+    before = (tmp_path / "sub" / "tex.exr").read_bytes()
+    assert main(["render", str(tmp_path / "main.xml"), "-o", str(tmp_path / "sub" / "tex.exr"),
+                 "--spp", "1"]) == 2
+    assert "is an input file" in capsys.readouterr().err
+    assert (tmp_path / "sub" / "tex.exr").read_bytes() == before
+
+
+def test_render_protects_textures_named_through_defaults(tmp_path, capsys):
+    """A texture named by a $substitution (a <default> or -D) is protected too."""
+    use_variant("scalar_rgb")
+    for name in ("t1.exr", "t2.exr"):
+        mi.Bitmap(np.full((2, 2, 3), 0.5, np.float32)).write(str(tmp_path / name))
+    (tmp_path / "s.xml").write_text("""<scene version="3.0.0">
+  <default name="tex" value="t1.exr"/>
+  <integrator type="direct"/>
+  <sensor type="orthographic"><film type="hdrfilm"><integer name="width" value="4"/>
+    <integer name="height" value="4"/></film></sensor>
+  <shape type="rectangle"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">
+    <string name="filename" value="$tex"/></texture></bsdf></shape>
+  <emitter type="constant"/>
+</scene>
+""")
+    for args in ([], ["-D", "tex=t2.exr"]):
+        target = tmp_path / ("t2.exr" if args else "t1.exr")
+        before = target.read_bytes()
+        assert main(["render", str(tmp_path / "s.xml"), "-o", str(target), *args]) == 2
+        assert "is an input file" in capsys.readouterr().err
+        assert target.read_bytes() == before
+
+
+def test_property_values_in_the_description():
+    """rgb_wavelengths as text and a fit.json's irregular albedo spectrum become the scene
+    elements the plugin reads."""
+    from mitsuba_powder.render import scene_with_properties
+
+    text, _, _ = scene_with_properties(SCENE, {
+        "rgb_wavelengths": "600, 550, 450",
+        "albedo": {"type": "irregular", "wavelengths": [400.0, 700.0], "values": [0.2, 0.8]}})
+    assert '<string name="rgb_wavelengths" value="600, 550, 450"' in text
+    assert '<spectrum name="albedo" value="400.0:0.2, 700.0:0.8"' in text
+    with pytest.raises(ValueError, match="a spectrum must be"):
+        scene_with_properties(SCENE, {"albedo": {"type": "blackbody"}})
 
 
 def test_render_rejects_a_name_that_is_not_a_property(tmp_path, capsys):

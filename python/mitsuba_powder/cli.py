@@ -775,7 +775,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with guarding_inputs():  # no command writes over a file it read
             return int(args.func(args))
-    except (ValueError, FileNotFoundError, RuntimeError, KeyError) as exc:
+    except (ValueError, OSError, RuntimeError, KeyError) as exc:
         print(f"mitsuba-powder: error: {exc}", file=sys.stderr)
         return 2
 

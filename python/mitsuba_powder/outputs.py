@@ -93,7 +93,7 @@ def output_file(path: str | Path, what: str = "output") -> Path:
         OutputError: ``path`` (resolved, links followed) is an input of the running command,
             or an existing folder.
     """
-    p = Path(path)
+    p = Path(path).expanduser()
     target = _resolved(p)
     if target.is_dir():
         raise OutputError(f"{what} {p}: is a folder; expected a file name")
@@ -129,7 +129,9 @@ def output_path(folder: str | Path, name: str | Path, mkdir: bool = True) -> Pat
     if not _is_safe_relative(name):
         raise OutputError(f"output name {name!r}: expected a relative file name without '..' "
                           f"inside the output folder {folder}")
-    base = Path(folder)
+    base = Path(folder).expanduser()
+    if base.exists() and not base.is_dir():
+        raise OutputError(f"output folder {folder} is a file; give a folder")
     path = base / name
     root, target = _resolved(base), _resolved(path)
     if not target.is_relative_to(root):

@@ -92,6 +92,10 @@ def _xml_property(name: str, value):
 
     if name in _STRING_PROPERTIES:
         return ET.Element("string", name=name, value=str(value))
+    if name == "rgb_wavelengths" and isinstance(value, str):
+        return ET.Element("string", name=name, value=value)
+    if isinstance(value, dict):
+        return _xml_spectrum(name, value)
     values = list(value) if isinstance(value, (list, tuple)) else [value]
     try:
         if any(isinstance(v, (str, bool)) for v in values):
@@ -110,16 +114,72 @@ def _xml_property(name: str, value):
     return ET.Element("float", name=name, value=repr(numbers[0]))
 
 
+def _xml_spectrum(name: str, value: dict):
+    """A ``<spectrum>`` of ``(wavelength, value)`` pairs from an ``irregular`` spectrum dict
+    (``wavelengths`` and ``values``: lists or comma-separated text, as a multi-wavelength
+    ``fit.json`` writes its albedo)."""
+    import xml.etree.ElementTree as ET
+
+    def numbers(v) -> list[float]:
+        return [float(x) for x in (v.replace(",", " ").split() if isinstance(v, str) else v)]
+
+    try:
+        if value.get("type") != "irregular":
+            raise ValueError
+        wl, vals = numbers(value["wavelengths"]), numbers(value["values"])
+        if len(wl) != len(vals) or not wl:
+            raise ValueError
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"powder property {name!r} = {value!r}: a spectrum must be "
+                         "{'type': 'irregular', 'wavelengths': [...], 'values': [...]} of "
+                         "equal lengths") from None
+    text = ", ".join(f"{w!r}:{v!r}" for w, v in zip(wl, vals))
+    return ET.Element("spectrum", name=name, value=text)
+
+
 #: A property that overrides others in the plugin, and what it overrides: given in the scene
 #: but not in the properties, while the properties give what it overrides, it is removed (so
 #: that ``radius`` from a fit gives the albedo from the grains, not the scene's albedo)
 _OVERRIDES = {
     "albedo": ("radius", "radius2", "fraction2", "grains", "agglomerate_radius",
-               "agglomerate_fill", "mixing", "material", "eta", "k"),
+               "agglomerate_fill", "mixing"),
     "tau_o": ("material", "eta", "k"),
     "eta": ("material",),
     "k": ("material",),
+    "material": ("eta", "k"),
+    "grains": ("albedo",),
+    "agglomerate_radius": ("albedo",),
+    "agglomerate_fill": ("albedo",),
+    "mixing": ("albedo",),
 }
+
+
+def _expanded_tree(scene: Path, depth: int = 0):
+    """(root element, folders, files) of a scene file with every ``<include>`` replaced by
+    the included file's content (recursively): the folders of the files read, the scene's
+    first (Mitsuba resolves relative names there), and the included files."""
+    import xml.etree.ElementTree as ET
+
+    if depth > 16:
+        raise ValueError(f"{scene}: <include> nested more than 16 deep")
+    root = ET.parse(scene).getroot()
+    folders, files = [scene.resolve().parent], []
+    for parent in list(root.iter()):
+        for child in reversed(list(parent)):  # from the end: indices before stay valid
+            if child.tag != "include" or not child.get("filename"):
+                continue
+            i = list(parent).index(child)
+            name = Path(child.get("filename"))
+            path = name if name.is_absolute() else scene.parent / name
+            if not path.is_file():
+                continue  # Mitsuba reports it when it loads the scene
+            sub, sub_folders, sub_files = _expanded_tree(path, depth + 1)
+            files += [path, *sub_files]
+            parent.remove(child)
+            for k, element in enumerate(list(sub)):
+                parent.insert(i + k, element)
+            folders += [f for f in sub_folders if f not in folders]
+    return root, folders, files
 
 
 def scene_with_properties(scene: str | Path, properties: dict
@@ -133,14 +193,17 @@ def scene_with_properties(scene: str | Path, properties: dict
     grains (``radius``...) but no albedo, its ``tau_o`` when they give ``eta``/``k`` or a
     ``material`` but no ``tau_o``, its ``eta``/``k`` when they give a ``material``.
 
+    Included files (``<include>``) are read into the description first, so that their powders
+    get the properties too.
+
     Returns:
-        (the XML text, the number of powder BSDFs changed (0 when the file defines none, e.g.
-        when they come from an ``<include>``), the scene properties removed).
+        (the XML text, the number of powder BSDFs changed (0 when the description defines
+        none, e.g. when a plugin creates them), the scene properties removed).
     """
     import xml.etree.ElementTree as ET
 
-    tree = ET.parse(scene)
-    powders = [e for e in tree.getroot().iter("bsdf") if e.get("type") == "powder"]
+    root, _, _ = _expanded_tree(Path(scene))
+    powders = [e for e in root.iter("bsdf") if e.get("type") == "powder"]
     elements = {name: _xml_property(name, value) for name, value in properties.items()}
     drop = {name for name, inputs in _OVERRIDES.items()
             if name not in properties and any(k in properties for k in inputs)}
@@ -154,7 +217,7 @@ def scene_with_properties(scene: str | Path, properties: dict
                     removed.append(name)
         for element in elements.values():
             bsdf.append(element)
-    return ET.tostring(tree.getroot(), encoding="unicode"), len(powders), removed
+    return ET.tostring(root, encoding="unicode"), len(powders), removed
 
 
 def _load_with_properties(scene: Path, properties: dict, defines: dict) -> tuple:
@@ -165,7 +228,9 @@ def _load_with_properties(scene: Path, properties: dict, defines: dict) -> tuple
         return mi.load_file(str(scene), **defines), [], list(properties), []
     resolver = mi.file_resolver()
     saved = mi.FileResolver(resolver)
-    resolver.prepend(str(scene.resolve().parent))  # relative file names, as load_file does
+    _, folders, _ = _expanded_tree(scene)
+    for folder in reversed(folders):  # relative file names, as load_file does (scene's first)
+        resolver.prepend(str(folder))
     try:
         loaded = mi.load_string(text, **defines)
     finally:
@@ -173,20 +238,36 @@ def _load_with_properties(scene: Path, properties: dict, defines: dict) -> tuple
     return loaded, list(properties), [], removed
 
 
-def scene_files(scene: str | Path) -> list[Path]:
-    """The files a scene XML names (``filename`` properties and ``<include>``), resolved
-    beside the scene file; a file that does not parse names none (Mitsuba reports it)."""
+def scene_files(scene: str | Path, defines: dict[str, str] | None = None) -> list[Path]:
+    """The files a scene description names: ``filename`` properties and ``<include>``s, in
+    the scene and the files it includes, ``$name`` substituted from its ``<default>``s and
+    ``defines``, each resolved beside every file of the description and the current folder
+    (every candidate that exists, and the first otherwise). A file that does not parse names
+    none (Mitsuba reports it)."""
+    import re
     import xml.etree.ElementTree as ET
 
     scene = Path(scene)
     try:
-        root = ET.parse(scene).getroot()
-    except (ET.ParseError, OSError):
-        return []
+        root, folders, included = _expanded_tree(scene)
+    except (ET.ParseError, OSError, ValueError):
+        return [scene]
+    values = {e.get("name"): e.get("value", "") for e in root.iter("default")}
+    values.update(defines or {})
+
+    def substituted(text: str) -> str:
+        return re.sub(r"\$(\w+)", lambda m: str(values.get(m.group(1), m.group(0))), text)
+
     names = [e.get("value") for e in root.iter() if e.get("name") == "filename"]
-    names += [e.get("filename") for e in root.iter("include")]
-    return [Path(n) if Path(n).is_absolute() else scene.parent / n
-            for n in names if n and "$" not in n]
+    out: list[Path] = [scene, *included]
+    for text in names:
+        if not text:
+            continue
+        name = Path(substituted(text))
+        candidates = [name] if name.is_absolute() else [f / name for f in folders] + [name]
+        found = [c for c in candidates if c.exists()]
+        out += found or candidates[:1]
+    return out
 
 
 def render_scene(
@@ -237,7 +318,7 @@ def render_scene(
     if properties:
         check_property_names(properties)
 
-    with guarding_inputs(scene, *scene_files(scene)), use_variant(variant):
+    with guarding_inputs(*scene_files(scene, defines)), use_variant(variant):
         output = output_file(output, "output")
         start = time.perf_counter()
         if properties:

@@ -434,7 +434,9 @@ def write_images(capture_like: Capture, images: np.ndarray,
         if isinstance(lp_path_or_names, (str, Path)):
             lp_copy = Path(lp_path_or_names)
             read_names, directions, linenos = _read_lp_lines(lp_copy, MIN_LZ_DEFAULT)
-            note_inputs(lp_image_paths(lp_copy, read_names))
+            # the photographs the .lp names (those that exist: a relight into the folder of
+            # an earlier relight's .lp may replace its own images)
+            note_inputs(p for p in lp_image_paths(lp_copy, read_names) if p.exists())
             names = output_names(read_names, [f"{lp_copy}, line {n}" for n in linenos])
         else:
             names = list(lp_path_or_names)
@@ -446,7 +448,12 @@ def write_images(capture_like: Capture, images: np.ndarray,
                                  "or .exr")
         out = Path(out_dir)
         paths = [output_path(out, name, mkdir=False) for name in names]
-        lp_out = output_path(out, lp_copy.name, mkdir=False) if lp_copy is not None else None
+        lp_out = None
+        if lp_copy is not None:
+            same = (out / lp_copy.name).resolve() == lp_copy.resolve()
+            # the .lp itself is the output's .lp when the names are kept: nothing to write
+            if not (same and list(names) == list(read_names)):
+                lp_out = output_path(out, lp_copy.name, mkdir=False)
         pixel = mi.Bitmap.PixelFormat.Y if imgs.shape[3] == 1 else mi.Bitmap.PixelFormat.RGB
         written = []
         with use_variant(mi.variant() or "scalar_rgb"):

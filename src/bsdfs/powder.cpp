@@ -1043,10 +1043,13 @@ private:
         std::vector<ScalarFloat> eta, k;
         for (size_t i = 0; i < m_index.size(); ++i) {
             const std::complex<double> &m = m_index[i];
-            if (powder::fresnel_normal(m.real(), m.imag()) <= 0.0)
-                Throw("powder: property \"surface_fresnel\" = \"fresnel\": the grain index is "
-                      "1 at %g nm, where the smooth interface reflects nothing (F(1) = 0) "
-                      "and the factor F(c) / F(1) is undefined", m_table_wavelengths[i]);
+            // below 1e-5 (|m - 1| < 0.0063) F(1) is ill-conditioned in single precision
+            if (double f1 = powder::fresnel_normal(m.real(), m.imag()); !(f1 >= 1e-5))
+                Throw("powder: property \"surface_fresnel\" = \"fresnel\": the grain index "
+                      "%g + %gi at %g nm is too close to 1: the smooth interface reflects "
+                      "almost nothing (F(1) = %g < 1e-5), and the factor F(c) / F(1) is not "
+                      "defined to single precision", m.real(), m.imag(),
+                      m_table_wavelengths[i], f1);
             eta.push_back((ScalarFloat) m.real());
             k.push_back((ScalarFloat) m.imag());
         }
