@@ -291,10 +291,10 @@ def render_scene(
         spp: samples per pixel, overriding the scene's sampler.
         defines: values for the scene's ``<default name=...>`` parameters.
         properties: powder properties, e.g. from a ``fit.json``, written into every
-            ``<bsdf type="powder">`` of the scene file before it is loaded
-            (:func:`scene_with_properties`: every property, ``eta`` or ``lobes`` too). When
-            the file defines no powder BSDF itself (they come from an ``<include>``), they are
-            set after loading where ``mi.traverse`` exposes them (:func:`apply_properties`).
+            ``<bsdf type="powder">`` of the scene file and the files it includes before it is
+            loaded (:func:`scene_with_properties`: every property, ``eta`` or ``lobes`` too).
+            When the description defines no powder BSDF (a plugin creates them), they are set
+            after loading where ``mi.traverse`` exposes them (:func:`apply_properties`).
         allow_missing: in that second case, render even when some of ``properties`` cannot be
             set (they are listed in :attr:`RenderResult.not_applied`); by default that is an
             error, since the image would show another powder than the one asked for.
