@@ -13,7 +13,9 @@ channel (albedo 0.9: 2 c0 tau_o >= 9.2). The "volume constants" column is what
 Powder configuration: ``albedo 0.8, extinction 1, amplitude_surface 1e-3`` (bench_bsdf.py's;
 ``energy`` "paper", the default, unless a row says "conserving"; the Mie row has ``radius 0.05``
 instead of the albedo, the constant-index row ``eta 1.35, k 0`` (PTFE-like: a Fresnel tau_o that
-is one number), and in RGB a row gives the Mie albedo's values as a constant albedo), 2^21
+is one number), the surface Fresnel factor (`surface_fresnel`) with that constant index and
+with hematite's tabulated one (beside the same rows without it), and in RGB a row gives the Mie
+albedo's values as a constant albedo), 2^21
 random direction pairs (random wavelengths in spectral variants), every configuration timed in
 turn within each of 9 repeats; a cost is the median of the per-repeat ratios to `principled`.
 
@@ -48,6 +50,13 @@ CONFIGS = [
       if name in ("all", "multiple", "coherent")],
     ("all, Mie albedo", "all", {"albedo": None, "radius": 0.05}),
     ("multiple, constant index", "multiple", {"eta": 1.35, "k": 0.0}),
+    # the surface term's Fresnel factor (surface_fresnel): its cost against the same index off
+    ("all, constant index", "all", {"eta": 1.35, "k": 0.0}),
+    ("all, constant index, surface Fresnel", "all",
+     {"eta": 1.35, "k": 0.0, "surface_fresnel": "fresnel"}),
+    ("surface, constant index, surface Fresnel", "surface",
+     {"eta": 1.35, "k": 0.0, "surface_fresnel": "fresnel"}),
+    ("all, surface Fresnel", "all", {"surface_fresnel": "fresnel"}),  # hematite's table
     *[(f"{name}, tau_o 1.5", lobes, {"tau_o": 1.5}) for name, lobes in LOBES.items()],
 ]
 

@@ -1018,6 +1018,9 @@ private:
     UnpolarizedSpectrum surface_fresnel_factor(const SurfaceInteraction3f &si, const Float &c,
                                                Mask active) const {
         if constexpr (is_spectral_v<Spectrum>) {
+            if (m_fresnel_constant) // one index for every wavelength: no lookup
+                return powder::fresnel_unpolarized(UnpolarizedSpectrum(c), m_fresnel_eta,
+                                                   m_fresnel_k) * m_fresnel_inv_f1;
             UnpolarizedSpectrum t = table_position(si), out(0.f);
             for (size_t ch = 0; ch < dr::size_v<UnpolarizedSpectrum>; ++ch) {
                 UInt32 i0 = UInt32(dr::floor(t[ch]));
@@ -1053,7 +1056,15 @@ private:
             eta.push_back((ScalarFloat) m.real());
             k.push_back((ScalarFloat) m.imag());
         }
-        if constexpr (is_spectral_v<Spectrum>) {
+        m_fresnel_constant =
+            std::all_of(eta.begin(), eta.end(), [&](ScalarFloat v) { return v == eta[0]; }) &&
+            std::all_of(k.begin(), k.end(), [&](ScalarFloat v) { return v == k[0]; });
+        if (is_spectral_v<Spectrum> && m_fresnel_constant) {
+            m_fresnel_eta = eta[0];
+            m_fresnel_k = k[0];
+            m_fresnel_inv_f1 =
+                (ScalarFloat) (1.0 / powder::fresnel_normal((double) eta[0], (double) k[0]));
+        } else if constexpr (is_spectral_v<Spectrum>) {
             size_t n = eta.size();
             std::vector<ScalarFloat> packed(4 * n);
             for (size_t i = 0; i < n; ++i) {
@@ -2693,6 +2704,7 @@ private:
         m_qsca2_table;
     SpecularModel m_specular;
     bool m_surface_fresnel = false; ///< surface_fresnel = "fresnel"
+    bool m_fresnel_constant = false; ///< surface_fresnel: one index at every wavelength
     /// surface_fresnel: RGB and mono: eta, k and 1 / F(1) per channel (literal constants:
     /// they never change after construction); spectral: records (eta[i], eta[i + 1], k[i],
     /// k[i + 1]) of the 1 nm grid (set_fresnel_index)
