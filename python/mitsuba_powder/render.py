@@ -12,10 +12,10 @@ import mitsuba as mi
 from .outputs import guarding_inputs, output_file
 from .params import check_property_names
 from .scene_description import expanded_tree, scene_files, scene_with_properties
+from .variants import check_variant, use_variant
 
 __all__ = ["RenderResult", "apply_properties", "render_scene", "scene_files",
            "scene_with_properties"]
-from .variants import check_variant, use_variant
 
 
 @dataclass(frozen=True)
