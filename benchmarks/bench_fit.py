@@ -259,7 +259,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=None,
                         help="rounds of section 4 (default 3; --quick: 1)")
     args = parser.parse_args()
-    repeat = args.repeat or (1 if args.quick else 3)
+    repeat = args.repeat if args.repeat is not None else (1 if args.quick else 3)
     if repeat < 1:
         parser.error(f"--repeat: {repeat} is outside the valid range [1, inf)")
     command_case = "1" if args.quick else "4"
