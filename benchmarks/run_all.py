@@ -14,12 +14,11 @@ import sys
 import time
 from pathlib import Path
 
+from registry import BENCHMARKS
+
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ["bench_bsdf.py", "bench_eval_breakdown.py", "bench_eval_size.py", "bench_ab.py",
-           "bench_jit_ops.py", "bench_python_bsdf.py",
-           "bench_render.py",
-           "bench_mie_update.py", "bench_fit.py", "bench_memory.py", "bench_textures.py",
-           "bench_rti_fit.py", "ptfe_reference_fit.py"]
+#: every registered benchmark script, in the order they run
+SCRIPTS = [bench.script for bench in BENCHMARKS]
 
 
 def main() -> int:

@@ -13,23 +13,24 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = {
-    "bench_bsdf.py": ("bsdf", ["eval M/s", "eval cost/diffuse"]),
-    "bench_eval_breakdown.py": ("eval_breakdown", ["eval ms", "cost / principled"]),
-    "bench_eval_size.py": ("eval_size", ["log2 pairs", "cost / coloured principled"]),
-    "bench_ab.py": ("ab", ["new / baseline", "max rel. difference"]),
-    "bench_jit_ops.py": ("jit_ops", ["ms per op", "cost / fma"]),
-    "bench_python_bsdf.py": ("python_bsdf", ["eval speedup", "render speedup"]),
-    "bench_render.py": ("render", ["gain", "DE00 mean", "cost/diffuse"]),
-    "bench_mie_update.py": ("mie_update", ["update+AD ms", "Fresnel ms"]),
-    "bench_fit.py": ("fit", ["s (first)", "loss/best", "agreeing"]),
-    "bench_memory.py": ("memory", ["peak RSS MiB"]),
-    "bench_textures.py": ("textures", ["relative to constant", "max relative error"]),
-    "bench_rti_fit.py": ("rti_fit", ["fit s", "peak MiB"]),
-    "ptfe_reference_fit.py": ("ptfe_reference", ["RMSE BRF", "within 1 %"]),
-}
-#: benchmark scripts whose name does not start with bench_
-OTHER_SCRIPTS = {"ptfe_reference_fit.py"}
+BENCHMARKS_DIR = ROOT / "benchmarks"
+
+
+def _load_script(name: str):
+    """A module of benchmarks/ (which import each other by their bare names)."""
+    from importlib.util import module_from_spec, spec_from_file_location
+
+    if str(BENCHMARKS_DIR) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS_DIR))
+    spec = spec_from_file_location(name, BENCHMARKS_DIR / f"{name}.py")
+    mod = module_from_spec(spec)
+    sys.modules[name] = mod  # a dataclass looks its module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+#: {script: (results name, printed column headers)}, from the one registry of benchmarks
+SCRIPTS = {b.script: (b.results, list(b.prints)) for b in _load_script("registry").BENCHMARKS}
 
 
 @pytest.fixture(scope="module")
@@ -89,15 +90,6 @@ def test_eval_size_rejects_bad_threads(threads, tmp_path):
     assert not (tmp_path / "eval_size.json").exists()
 
 
-def _load_script(name: str):
-    from importlib.util import module_from_spec, spec_from_file_location
-
-    spec = spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
-    mod = module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_report_fills_every_table(quick_results, tmp_path):
     """report.py replaces every table of the page with the one the results give: each table
     body is first replaced by a sentinel, which must be gone afterwards."""
@@ -125,6 +117,9 @@ def test_report_fills_every_table(quick_results, tmp_path):
 
 
 def test_run_all_lists_every_script():
+    """Every script of benchmarks/ that is not a helper module is registered, and run_all runs
+    exactly the registered ones."""
     mod = _load_script("run_all")
-    scripts = {p.name for p in (ROOT / "benchmarks").glob("bench_*.py")} | OTHER_SCRIPTS
+    helpers = {"_common.py", "python_powder.py", "registry.py", "report.py", "run_all.py"}
+    scripts = {p.name for p in BENCHMARKS_DIR.glob("*.py")} - helpers
     assert scripts == set(mod.SCRIPTS) == set(SCRIPTS)
