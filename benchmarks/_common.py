@@ -43,9 +43,14 @@ def barh_figure(path: Path, labels, values, colors, xlabel: str, log: bool = Fal
     ax.set_xlabel(xlabel)
     ax.invert_yaxis()
     ax.tick_params(labelsize=7)
+    save_figure(fig, path)
+
+
+def save_figure(fig, path: Path, dpi: int = 100) -> None:
+    """Lay out ``fig`` (a pyplot figure), write it to ``path`` and close it."""
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
 
 
 def timeit(fn, repeat: int, warmup: int = 1) -> float:

@@ -20,7 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, print_table, pyplot, save, use_variant
+from _common import arg_parser, print_table, pyplot, save, save_figure, use_variant
 
 BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
 BSDFS = {
@@ -193,8 +193,7 @@ def main() -> None:
         ax.set_xlabel("eval, M calls/s")
         ax.invert_yaxis()
         ax.tick_params(labelsize=7)
-    fig.tight_layout()
-    fig.savefig(args.out / "bsdf.png", dpi=100)
+    save_figure(fig, args.out / "bsdf.png")
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ from _common import (
     pyplot,
     random_pairs,
     save,
+    save_figure,
     time_in_turn,
     use_variant,
 )
@@ -118,9 +119,7 @@ def main() -> None:
     ax.set_xlabel("log2 direction pairs per call")
     ax.set_ylabel("powder eval cost")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(args.out / "eval_size.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, args.out / "eval_size.png")
 
 
 if __name__ == "__main__":

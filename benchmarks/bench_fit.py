@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import arg_parser, print_table, save
+from _common import arg_parser, print_table, save, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUTH = {"amplitude_volume": 1.1, "g": 0.2, "extinction": 0.5, "radius": 0.05,
@@ -240,9 +240,7 @@ def plot(rows: list[dict], before: list[dict], path: Path) -> None:
     ax.set(xscale="log", yscale="log", xlabel="wavelengths fitted jointly",
            ylabel="fit time (s)", title="fit time, 2-core machine")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:

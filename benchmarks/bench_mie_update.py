@@ -15,7 +15,7 @@ import platform
 import drjit as dr
 import mitsuba as mi
 
-from _common import arg_parser, random_pairs, timeit, use_variant
+from _common import arg_parser, random_pairs, save_figure, timeit, use_variant
 
 
 def bench(variant: str, radius: float, n_dirs: int, repeat: int) -> dict:
@@ -114,8 +114,7 @@ def main() -> None:
     ax.set(xlabel="direction pairs per step", ylabel="ms",
            title="radius update (with tangents) vs eval+backward")
     ax.legend(fontsize=6)
-    fig.tight_layout()
-    fig.savefig(args.out / "mie_update.png", dpi=110)
+    save_figure(fig, args.out / "mie_update.png", dpi=110)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, print_table, pyplot, save, use_variant
+from _common import arg_parser, print_table, pyplot, save, save_figure, use_variant
 
 ROOT = Path(__file__).resolve().parents[1]
 REPEAT = 3  # timings are the best of REPEAT renders
@@ -321,8 +321,7 @@ def main() -> None:
     axes[1].set_title("CIEDE2000, llvm_ad_rgb vs llvm_ad_spectral (showcase)", fontsize=8)
     axes[1].axis("off")
     fig.colorbar(im, ax=axes[1], fraction=0.03)
-    fig.tight_layout()
-    fig.savefig(args.out / "render.png", dpi=100)
+    save_figure(fig, args.out / "render.png")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import arg_parser, print_table, pyplot, save
+from _common import arg_parser, print_table, pyplot, save, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # tests/reference_fit.py, tests/reference.py
@@ -138,9 +138,7 @@ def main() -> None:
     ax.set(xlabel="start (sorted by final loss)", ylabel="final loss / best loss",
            title=f"PTFE reference fit, {starts} starts per wavelength")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(args.out / "ptfe_reference.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, args.out / "ptfe_reference.png")
 
 
 if __name__ == "__main__":
