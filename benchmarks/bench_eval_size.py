@@ -14,8 +14,8 @@ measures the arithmetic. Inside a render, eval's values stay in registers. The c
 The "memory floor" is a kernel that reads the same inputs as the powder (wi, wo and the
 wavelengths) and writes as many channels with one multiply-add each: what the batch costs
 when only its memory traffic is paid. A kernel that overlaps its memory traffic with its
-arithmetic costs about the larger of the two; one that cannot (docs/benchmarks.md, step 5 of
-issue 11) costs about their sum. ``--threads 1`` shows it most plainly.
+arithmetic costs about the larger of the two; one that cannot (docs/benchmarks.md, section 1)
+costs about their sum. ``--threads 1`` shows it most plainly.
 
 Powder configuration: bench_bsdf.py's (``albedo 0.8, extinction 1, amplitude_surface
 1e-3``). Each batch size: the three BSDFs and the floor timed in turn within each of 21

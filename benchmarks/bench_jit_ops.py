@@ -1,5 +1,5 @@
 """What one operation costs in a Dr.Jit LLVM kernel on this host: the unit costs behind the
-powder eval's profile (issue 11, docs/benchmarks.md "Where the eval time goes").
+powder eval's profile (docs/benchmarks.md, section 1).
 
 Each row times a kernel of 16 independent instances of one operation over N lanes (inputs
 read from memory, the 16 results summed and written), minus the same kernel without the

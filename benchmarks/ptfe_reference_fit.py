@@ -6,8 +6,8 @@ scipy least_squares from a 60-point Sobol design; no code of the product): free 
 extinction, albedo, A_s', l_c; eta = 1.35, k = 0; Harvey-Shack; infinite thickness; plain sum of
 squares of BRF residuals. Prints a table, writes benchmarks/results/ptfe_reference.json (per
 wavelength: best loss, RMSE, parameters, starts within 1 % of the best, sorted start losses,
-seconds) and ptfe_reference.png (sorted start losses / best loss). Issue 10's acceptance: the
-product's loss within 2 % of these.
+seconds) and ptfe_reference.png (sorted start losses / best loss). bench_fit.py compares the
+product's PTFE fits with these losses (the product's loss should be within 2 % of them).
 Run:  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/ptfe_reference_fit.py [--quick]
 """
 
