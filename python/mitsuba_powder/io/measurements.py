@@ -1,5 +1,5 @@
 """Goniometric BRDF measurements: the CSV format, a strict loader, a writer, and the dispatch
-that also reads the IPAG goniometers' text files (:mod:`mitsuba_powder.ipag`).
+that also reads the IPAG goniometers' text files (:mod:`mitsuba_powder.io.ipag`).
 
 :func:`load_measurements` recognises what it is given:
 
@@ -9,7 +9,7 @@ that also reads the IPAG goniometers' text files (:mod:`mitsuba_powder.ipag`).
 - an IPAG single-geometry file (three columns, geometry in the name ``..._i20e30a0_c.txt``);
 - a folder of IPAG single-geometry files (one data set, one sample).
 
-The IPAG layouts and their angle conventions are described in :mod:`mitsuba_powder.ipag` and
+The IPAG layouts and their angle conventions are described in :mod:`mitsuba_powder.io.ipag` and
 docs/fitting.md ("Files from IPAG goniometers and SSHADE").
 
 CSV format (UTF-8; lines starting with ``#`` are comments, kept as provenance; CRLF, LF or CR
@@ -38,7 +38,7 @@ in any azimuth plane are the same geometry. :meth:`Measurements.geometry_summary
 unique geometries and replicated rows. In the CSV every row has the header's columns and units,
 so same-geometry rows are always replicates, never contradictory. What is contradictory in the
 IPAG layouts (files of different samples in one folder, replicate files whose calibration
-metadata disagree) is an error naming both files and lines (see :mod:`mitsuba_powder.ipag`).
+metadata disagree) is an error naming both files and lines (see :mod:`mitsuba_powder.io.ipag`).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .outputs import note_input, output_file
+from ..outputs import note_input, output_file
 
 REQUIRED = ("theta_i", "theta_o", "phi", "wavelength", "brf")
 OPTIONAL = ("sigma",)
@@ -84,7 +84,7 @@ class Measurements:
             ``"signed"`` or ``"physical"`` (IPAG), ``"any"`` (IPAG, every emergence 0: both
             conventions agree), or ``""`` (built in code).
         skipped: what the loader left out, by reason (e.g. ``{"nan_values": 3}``); see
-            :mod:`mitsuba_powder.ipag`.
+            :mod:`mitsuba_powder.io.ipag`.
     """
 
     theta_i: np.ndarray
@@ -203,7 +203,7 @@ def load_measurements(path: str | Path, convention: str | None = None,
         path: a CSV file (project format, above), an IPAG multi- or single-geometry text file,
             or a folder of IPAG single-geometry files.
         convention: IPAG files only: ``"signed"`` or ``"physical"`` forces the angle
-            convention; ``None`` decides it from the file (see :mod:`mitsuba_powder.ipag`).
+            convention; ``None`` decides it from the file (see :mod:`mitsuba_powder.io.ipag`).
         zero_error: IPAG files only: what to do when some (not all) errors are zero or
             missing: ``"raise"``, ``"unweighted"`` (drop every sigma) or ``"skip"`` (leave
             those values out, counted).
