@@ -71,7 +71,7 @@ from pathlib import Path
 import numpy as np
 
 from ..outputs import note_input, output_file, output_path
-from .measurements import (
+from .dataset import (
     MeasurementError,
     Measurements,
     _check_range,
