@@ -58,8 +58,8 @@ CASES = {
 BEFORE = """
 import json, sys, time
 import numpy as np
-from mitsuba_powder.fit import fit
-from mitsuba_powder.protocols import simulate
+from mitsuba_powder.fitting.fit import fit
+from mitsuba_powder.fitting.protocols import simulate
 truth, protocol, wavelengths = json.loads(sys.argv[1])
 data = simulate(truth, protocol, tuple(wavelengths), noise=0.015, seed=1)
 fixed = {"radius": truth["radius"]} if len(wavelengths) == 1 else {}
@@ -72,8 +72,8 @@ print(json.dumps({"seconds": seconds, "evaluations": result.evaluations,
 
 
 def synthetic_rows(cases: list[str]) -> list[dict]:
-    from mitsuba_powder.fit import fit
-    from mitsuba_powder.protocols import simulate
+    from mitsuba_powder.fitting.fit import fit
+    from mitsuba_powder.fitting.protocols import simulate
 
     rows = []
     for key in cases:
@@ -122,8 +122,8 @@ def before_rows(cases: list[str], package: Path) -> list[dict]:
 
 
 def ptfe_rows(wavelengths: list[float], seeds: list[int], starts: int | None) -> list[dict]:
-    from mitsuba_powder.fit import DEFAULT_STARTS, fit
-    from mitsuba_powder.measurements import load_measurements
+    from mitsuba_powder.fitting.fit import DEFAULT_STARTS, fit
+    from mitsuba_powder.io.measurements import load_measurements
 
     reference = json.loads((ROOT / "benchmarks" / "results" / "ptfe_reference.json")
                            .read_text())
@@ -157,8 +157,8 @@ def command_rows(case: str, repeat: int, workdir: Path) -> list[dict]:
     """Section 4: the ``fit`` command end to end, one fresh process per run (see the module
     docstring)."""
     import mitsuba_powder
-    from mitsuba_powder.measurements import save_measurements
-    from mitsuba_powder.protocols import simulate
+    from mitsuba_powder.fitting.protocols import simulate
+    from mitsuba_powder.io.measurements import save_measurements
 
     protocol, wavelengths = CASES[case]
     data = simulate(TRUTH, protocol, wavelengths, noise=0.015, seed=1)

@@ -47,8 +47,8 @@ def job(name: str, quick: bool) -> dict:
         info = {"what": f"showcase {res[0]}x{res[1]}, {spp} spp"}
     elif name == "render_gonio":
         prepare("llvm_ad_rgb")
-        from mitsuba_powder.gonio import render_gonio
-        from mitsuba_powder.protocols import protocol_geometries
+        from mitsuba_powder.fitting.protocols import protocol_geometries
+        from mitsuba_powder.rendering.gonio import render_gonio
 
         ti, to, ph = protocol_geometries("backscatter" if quick else "shadows,backscatter")
         spp = 4 if quick else 64
@@ -56,8 +56,8 @@ def job(name: str, quick: bool) -> dict:
         info = {"what": f"render-gonio, {len(ti)} geometries, 16x16 px, {spp} spp"}
     elif name == "fit":
         prepare("llvm_ad_mono")
-        from mitsuba_powder.fit import fit
-        from mitsuba_powder.measurements import load_measurements
+        from mitsuba_powder.fitting.fit import fit
+        from mitsuba_powder.io.measurements import load_measurements
 
         data = load_measurements(ROOT / "measurements" / "ptfe_germer2017.csv")
         data = data.subset(data.wavelength == 351.0)

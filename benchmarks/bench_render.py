@@ -55,7 +55,7 @@ def _render(scene, spp: int, seed: int = 0) -> tuple[np.ndarray, float]:
 # ----------------------------------------------------------------------------- sampling
 
 def sampling_case_gonio(name, props, geometry, strategy, radius, res, spp, equal_time=True):
-    from mitsuba_powder.gonio import render_gonio
+    from mitsuba_powder.rendering.gonio import render_gonio
 
     rows = []
     out = {}
@@ -86,7 +86,7 @@ def sampling_case_gonio(name, props, geometry, strategy, radius, res, spp, equal
 
 
 def sampling_case_sky(label, props, theta_o, res, spp):
-    from mitsuba_powder.furnace import white_furnace
+    from mitsuba_powder.rendering.furnace import white_furnace
 
     out = {}
     for sampling in ("lobes", "cosine"):
@@ -151,7 +151,7 @@ def _sampling_row(name, out) -> dict:
 # ----------------------------------------------------------------------------- variants
 
 def variants_showcase(res, spp, ref_spp) -> tuple[list[dict], dict]:
-    from mitsuba_powder.photo_comparison import delta_e_2000
+    from mitsuba_powder.rendering.photo import delta_e_2000
 
     w, h = res
     rows, images = [], {}
@@ -183,9 +183,9 @@ def variants_gonio(spp: int, res: int, quick: bool) -> list[dict]:
     """The gonio patch over both protocols (render-gonio, collimated source, a hematite
     powder with a Mie albedo) in each variant: render time, and the RGB BRF's colour error
     against the spectral one (analytic values, CIEDE2000, white 1)."""
-    from mitsuba_powder.gonio import render_gonio
-    from mitsuba_powder.photo_comparison import delta_e_2000
-    from mitsuba_powder.protocols import protocol_geometries
+    from mitsuba_powder.fitting.protocols import protocol_geometries
+    from mitsuba_powder.rendering.gonio import render_gonio
+    from mitsuba_powder.rendering.photo import delta_e_2000
 
     ti, to, ph = protocol_geometries("backscatter" if quick else "shadows,backscatter")
     props = {**SAMPLES["5"], "extinction": 1.0}
@@ -209,8 +209,8 @@ def variants_gonio(spp: int, res: int, quick: bool) -> list[dict]:
 def variants_powder_colour() -> list[dict]:
     """BRF colour of each showcase powder on the gonio patch: RGB variant (3 wavelengths)
     against the spectral film value, CIEDE2000 (linear sRGB reflectance factors, white 1)."""
-    from mitsuba_powder.gonio import render_gonio
-    from mitsuba_powder.photo_comparison import delta_e_2000
+    from mitsuba_powder.rendering.gonio import render_gonio
+    from mitsuba_powder.rendering.photo import delta_e_2000
 
     rows = []
     for name, props in SAMPLES.items():

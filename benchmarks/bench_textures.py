@@ -68,7 +68,7 @@ def bench_eval(variant: str, n: int, size: int, repeat: int) -> list[dict]:
 
 
 def bench_table(variant: str, lo: float, hi: float) -> dict:
-    from mitsuba_powder.grain_optics import GrainOptics
+    from mitsuba_powder.plugin.grains import GrainOptics
 
     use_variant(variant)
     warnings: list[str] = []

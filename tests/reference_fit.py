@@ -1,6 +1,6 @@
 """Independent multi-start least-squares fit of docs/model.md's BRDF at one wavelength (test-only).
 
-The reference the project's fitter (``mitsuba_powder.fit``) is judged against (issue 10): it
+The reference the project's fitter (``mitsuba_powder.fitting.fit``) is judged against (issue 10): it
 shares no code with the product. The model is :func:`reference.brdf` (NumPy float64, docs/model.md's
 equations written independently of the C++ plugin), ``tau_o`` comes from this module's own
 Fresnel quadrature (:func:`tau_o_fresnel`, docs/model.md "Extrapolation ratio tau_o"), and the
@@ -9,9 +9,9 @@ Jacobian) polishing every point of a scrambled Sobol design over the (log-)bound
 
 Free parameters (docs/model.md names): ``amplitude_volume`` A_v, ``g``, ``extinction`` kappa (1/um),
 ``albedo`` rho, ``amplitude_surface`` A_s' (um^2), ``correlation_length`` l_c (um); Harvey-Shack
-specular lobe, infinite thickness. Bounds are those of ``mitsuba_powder.fit.FITTABLE`` (copied,
-not imported). Loss: plain sum of squares of BRF residuals, ``sum((BRF_model - BRF)^2)`` with
-``BRF = pi * BRDF``.
+specular lobe, infinite thickness. Bounds are those of
+``mitsuba_powder.fitting.fit.FITTABLE`` (copied, not imported). Loss: plain sum of squares of BRF
+residuals, ``sum((BRF_model - BRF)^2)`` with ``BRF = pi * BRDF``.
 
 Units: angles in degrees, wavelengths in nm, lengths in micrometres, extinction in 1/micrometre.
 """
@@ -30,7 +30,7 @@ from scipy.stats import qmc
 from reference import Params, brdf, gonio_directions
 
 #: Free parameters in fit order: (lower, upper, optimised on a log10 scale). The same bounds as
-#: the plugin fitter's ``FITTABLE`` (python/mitsuba_powder/fit.py).
+#: the plugin fitter's ``FITTABLE`` (python/mitsuba_powder/fitting/fit.py).
 BOUNDS: dict[str, tuple[float, float, bool]] = {
     "amplitude_volume": (0.05, 5.0, True),
     "g": (-0.95, 0.95, False),

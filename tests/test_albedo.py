@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from helpers import use_variant
-from mitsuba_powder.appearance import (
+from mitsuba_powder.cli import main
+from mitsuba_powder.plugin.appearance import (
     albedo_for_reflectance,
     hemispherical_nodes,
     reflectance_of_srgb,
 )
-from mitsuba_powder.cli import main
 
 PROPS = {"extinction": 0.5, "g": 0.2, "amplitude_surface": 1e-4, "eta": 1.6, "k": 0.0,
          "amplitude_volume": 1.1}
@@ -91,7 +91,7 @@ def test_unreachable_and_bad_input():
 
 
 def test_srgb_upsampling_keeps_the_colour():
-    from mitsuba_powder.appearance import colour_of_spectrum
+    from mitsuba_powder.plugin.appearance import colour_of_spectrum
 
     wl, r = reflectance_of_srgb([0.7, 0.35, 0.25])
     _, srgb, _ = colour_of_spectrum(wl, r)

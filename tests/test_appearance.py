@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from helpers import use_variant
-from mitsuba_powder.appearance import colour_of_spectrum, powder_colour
 from mitsuba_powder.cli import main
+from mitsuba_powder.plugin.appearance import colour_of_spectrum, powder_colour
 from test_mie import hematite_nk, mie_ref, rho_ref, tau_o_independent
 from test_physics import hemispherical_reflectance
 

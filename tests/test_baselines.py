@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from helpers import random_hemisphere
-from mitsuba_powder.baselines import MODELS, fit_baseline, hapke, oren_nayar, rtlsr_kernels
 from mitsuba_powder.cli import main
-from mitsuba_powder.measurements import Measurements, gonio_directions, save_measurements
-from mitsuba_powder.protocols import protocol_geometries, simulate
+from mitsuba_powder.fitting.baselines import MODELS, fit_baseline, hapke, oren_nayar, rtlsr_kernels
+from mitsuba_powder.fitting.protocols import protocol_geometries, simulate
+from mitsuba_powder.io.measurements import Measurements, gonio_directions, save_measurements
 
 HAPKE = {"w": 0.8, "b": 0.3, "c": 0.4, "B_s0": 1.0, "h_s": 0.06, "B_c0": 0.5, "h_c": 0.02,
          "theta_bar": 15.0}

@@ -32,7 +32,7 @@ def white_powder(kappa_over_k0: float, g: float, tau_o: float, energy: str,
 
 
 def reflectance(bsdf, theta_i: float) -> float:
-    from mitsuba_powder.furnace import hemispherical_reflectance
+    from mitsuba_powder.rendering.furnace import hemispherical_reflectance
 
     return float(hemispherical_reflectance(bsdf, theta_i)[0])
 
@@ -98,7 +98,7 @@ def test_white_furnace_conserving_spectral(kappa_over_k0, tau):
     if tau is None:
         del props["tau_o"]
     bsdf = mi.load_dict(props)
-    from mitsuba_powder.furnace import hemispherical_reflectance
+    from mitsuba_powder.rendering.furnace import hemispherical_reflectance
 
     # the film's channels for a reflectance of 1 at every wavelength, by the same quadrature
     white = hemispherical_reflectance(

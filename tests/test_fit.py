@@ -13,18 +13,18 @@ import pytest
 
 from helpers import SHARED, needs_shared, use_variant
 from mitsuba_powder.cli import main
-from mitsuba_powder.fit import Problem, default_free, fit, predict, radius_branches
-from mitsuba_powder.grain_optics import GrainOptics
-from mitsuba_powder.measurements import (
+from mitsuba_powder.fitting.fit import Problem, default_free, fit, predict, radius_branches
+from mitsuba_powder.fitting.protocols import geometries, protocol_geometries, simulate
+from mitsuba_powder.io.measurements import (
     MeasurementError,
     Measurements,
     gonio_directions,
     load_measurements,
     save_measurements,
 )
-from mitsuba_powder.model import BatchBRF, PowderBRF
-from mitsuba_powder.protocols import geometries, protocol_geometries, simulate
-from mitsuba_powder.ptfe import convert_germer_ptfe
+from mitsuba_powder.io.ptfe import convert_germer_ptfe
+from mitsuba_powder.plugin.brf import BatchBRF, PowderBRF
+from mitsuba_powder.plugin.grains import GrainOptics
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_PTFE = SHARED / "data" / "ptfe_germer2017" / "PTFE.data.csv"

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from mitsuba_powder.cli import build_parser, main
-from mitsuba_powder.fit import fit
-from mitsuba_powder.fit_report import (
+from mitsuba_powder.fitting.fit import fit
+from mitsuba_powder.fitting.protocols import simulate
+from mitsuba_powder.fitting.report import (
     FIGURES,
     SUMMARY_FIGURES,
     SUMMARY_WAVELENGTHS,
@@ -22,8 +23,7 @@ from mitsuba_powder.fit_report import (
     summary_wavelengths,
     write_report,
 )
-from mitsuba_powder.measurements import save_measurements
-from mitsuba_powder.protocols import simulate
+from mitsuba_powder.io.measurements import save_measurements
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

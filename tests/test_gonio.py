@@ -13,9 +13,9 @@ import pytest
 
 from helpers import use_variant
 from mitsuba_powder.cli import main
-from mitsuba_powder.furnace import white_furnace
-from mitsuba_powder.gonio import FLOAT32_U, GonioResult, render_gonio
-from mitsuba_powder.protocols import geometries
+from mitsuba_powder.fitting.protocols import geometries
+from mitsuba_powder.rendering.furnace import white_furnace
+from mitsuba_powder.rendering.gonio import FLOAT32_U, GonioResult, render_gonio
 from reference import Params, brdf
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "gonio.xml"
@@ -199,8 +199,8 @@ def test_scene_file_is_the_same_goniometer():
 
 def test_measurement_mode_renders_each_wavelength(tmp_path):
     """Mono variant at the geometries and wavelengths of a measurement file."""
-    from mitsuba_powder.measurements import Measurements, save_measurements
-    from mitsuba_powder.model import PowderBRF
+    from mitsuba_powder.io.measurements import Measurements, save_measurements
+    from mitsuba_powder.plugin.brf import PowderBRF
 
     data = Measurements([0, 20, 40, 40], [10, -20, 40, 0], [0, 30, 0, 90],
                         [532, 532, 633, 633], [0.9, 1.0, 1.1, 0.8], comments=["test rows"])
@@ -326,8 +326,8 @@ def test_batch_images_do_not_leak_into_each_other(guard, monkeypatch):
     the film position): relative differences up to 2.6e-5, with a standard error as large,
     so the z-test did not see it; the float32 tolerance does. With the guard columns every
     pixel of a collimated mono render holds the same value (to rounding)."""
-    import mitsuba_powder.gonio as gonio
-    from mitsuba_powder.measurements import load_measurements
+    import mitsuba_powder.rendering.gonio as gonio
+    from mitsuba_powder.io.measurements import load_measurements
 
     monkeypatch.setattr(gonio, "GUARD_COLUMNS", guard)
     data = load_measurements(Path(__file__).resolve().parents[1] / "measurements"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from helpers import random_hemisphere
-from mitsuba_powder.baselines import MODELS, hapke, hapke_h, hapke_roughness
-from mitsuba_powder.measurements import gonio_directions
+from mitsuba_powder.fitting.baselines import MODELS, hapke, hapke_h, hapke_roughness
+from mitsuba_powder.io.measurements import gonio_directions
 
 SMOOTH = {"w": 0.8, "b": 0.3, "c": 0.4, "B_s0": 1.0, "h_s": 0.06, "B_c0": 0.5, "h_c": 0.02}
 

@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 from mitsuba_powder.cli import main
-from mitsuba_powder.ipag import from_project, save_ipag
-from mitsuba_powder.measurements import (
+from mitsuba_powder.fitting.protocols import simulate
+from mitsuba_powder.io.ipag import from_project, save_ipag
+from mitsuba_powder.io.measurements import (
     MeasurementError,
     Measurements,
     gonio_directions,
     load_measurements,
     save_measurements,
 )
-from mitsuba_powder.model import PowderBRF
-from mitsuba_powder.protocols import simulate
+from mitsuba_powder.plugin.brf import PowderBRF
 
 NEWLINES = {"crlf": "\r\n", "lf": "\n", "cr": "\r"}
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mitsuba_powder.measurements import (
+from mitsuba_powder.io.measurements import (
     MeasurementError,
     Measurements,
     format_number,

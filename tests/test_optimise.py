@@ -1,11 +1,11 @@
-"""The shared optimiser (mitsuba_powder.optimise) on problems with known answers."""
+"""The shared optimiser (mitsuba_powder.fitting.optimise) on problems with known answers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mitsuba_powder.optimise import (
+from mitsuba_powder.fitting.optimise import (
     ParamSpec,
     batch_levenberg_marquardt,
     distinct_best,

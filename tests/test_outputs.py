@@ -292,7 +292,7 @@ def test_render_refuses_to_write_over_a_texture_of_its_scene(tmp_path, capsys):
 
 
 def test_compare_photo_refuses_to_write_over_the_photo(tmp_path, capsys):
-    from mitsuba_powder.photo_comparison import write_exr
+    from mitsuba_powder.rendering.photo import write_exr
 
     img = np.full((6, 6, 3), 0.3, np.float32)
     write_exr(tmp_path / "render.exr", img)

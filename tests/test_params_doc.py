@@ -108,9 +108,9 @@ def test_every_documented_property_is_read(tmp_path):
 
 
 def test_python_property_list_is_the_plugins():
-    """mitsuba_powder.params.POWDER_PROPERTIES (what render --set accepts) names exactly the
+    """mitsuba_powder.plugin.params.POWDER_PROPERTIES (what render --set accepts) names exactly the
     properties of the plugin's doc comment."""
-    from mitsuba_powder.params import POWDER_PROPERTIES
+    from mitsuba_powder.plugin.params import POWDER_PROPERTIES
 
     assert sorted(POWDER_PROPERTIES) == sorted(doc_comment_entries())
     assert len(set(POWDER_PROPERTIES)) == len(POWDER_PROPERTIES)

@@ -10,8 +10,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mitsuba_powder import photo_comparison as P
 from mitsuba_powder.cli import main
+from mitsuba_powder.rendering import photo as P
 from mitsuba_powder.variants import use_variant
 
 
@@ -163,7 +163,7 @@ def test_photo_and_model_comparisons_do_not_overwrite_each_other(tmp_path, capsy
     """compare-photo and compare-models have their own default folders, and their own file
     names when given the same --out."""
     from mitsuba_powder.cli import build_parser
-    from mitsuba_powder.model_comparison import write_comparison
+    from mitsuba_powder.fitting.comparison import write_comparison
 
     parser = build_parser()
     assert parser.parse_args(["compare-photo", "r.exr", "p.png"]).out == "photo_compare"

@@ -137,7 +137,7 @@ def test_render_applies_fitted_parameters(tmp_path, capsys):
     # with k, the powder's tau_o comes from Fresnel of eta = 1.35, not from hematite
     params.write_text(json.dumps({"parameters": {"extinction": 3.0, "eta": 1.35, "k": 0.0}}))
     assert main(base + ["--params", str(params)]) == 0
-    from mitsuba_powder.render import scene_with_properties
+    from mitsuba_powder.rendering.render import scene_with_properties
 
     text, count, removed = scene_with_properties(SCENE, {"eta": 1.35, "k": 0.0})
     assert count == 1 and '<float name="eta" value="1.35"' in text and removed == []
@@ -150,7 +150,7 @@ def test_render_applies_fitted_parameters(tmp_path, capsys):
 
 def test_apply_properties_after_loading():
     """Scenes whose powder comes from an <include>: what mi.traverse exposes is set."""
-    from mitsuba_powder.render import apply_properties
+    from mitsuba_powder.rendering.render import apply_properties
 
     use_variant("llvm_ad_rgb")
     a = mi.load_file(str(SCENE), res_x="48", res_y="24", albedo="0.5, 0.5, 0.5",
@@ -182,7 +182,7 @@ def test_render_sets_properties_on_included_powders(tmp_path, capsys):
   <emitter type="directional"><vector name="direction" value="0, 0, -1"/></emitter>
 </scene>
 """)
-    from mitsuba_powder.render import scene_with_properties
+    from mitsuba_powder.rendering.render import scene_with_properties
 
     text, count, _ = scene_with_properties(tmp_path / "main.xml", {"lobes": "single"})
     assert count == 1 and 'value="single"' in text
@@ -224,7 +224,7 @@ def test_render_protects_textures_named_through_defaults(tmp_path, capsys):
 def test_property_values_in_the_description():
     """rgb_wavelengths as text and a fit.json's irregular albedo spectrum become the scene
     elements the plugin reads."""
-    from mitsuba_powder.render import scene_with_properties
+    from mitsuba_powder.rendering.render import scene_with_properties
 
     text, _, _ = scene_with_properties(SCENE, {
         "rgb_wavelengths": "600, 550, 450",

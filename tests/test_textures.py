@@ -207,7 +207,7 @@ WAVELENGTHS = (450.0, 550.0, 610.0, 700.0)  # whole nm: no interpolation along t
 def grain_albedo_direct(textured: dict, extra: dict, texel: int, wavelengths) -> np.ndarray:
     """The albedo at one texel by direct Mie (or slab) theory in double precision, through
     the plugin's own double-precision table of a constant instance (GrainOptics)."""
-    from mitsuba_powder.grain_optics import GrainOptics
+    from mitsuba_powder.plugin.grains import GrainOptics
 
     values = {k: v[texel] for k, v in textured.items()}
     props = {**extra, **values}

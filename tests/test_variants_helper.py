@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import mitsuba_powder
-from mitsuba_powder.render import render_scene
+from mitsuba_powder.rendering.render import render_scene
 from mitsuba_powder.variants import check_variant, set_variant, use_variant
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"

@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mitsuba_powder.furnace import hemispherical_reflectance
+from mitsuba_powder.rendering.furnace import hemispherical_reflectance
 from mitsuba_powder.variants import set_variant
 
 KAPPA_OVER_K0 = (1e-3, 1e-2, 0.05, 0.25, 1.0, 10.0)

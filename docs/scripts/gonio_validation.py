@@ -16,10 +16,10 @@ from statistics import NormalDist
 import numpy as np
 from docs_output import add_output_options, output_dir
 
-from mitsuba_powder.furnace import white_furnace
-from mitsuba_powder.gonio import render_gonio
-from mitsuba_powder.gonio_report import plot_gonio
-from mitsuba_powder.protocols import protocol_geometries
+from mitsuba_powder.fitting.protocols import protocol_geometries
+from mitsuba_powder.rendering.furnace import white_furnace
+from mitsuba_powder.rendering.gonio import render_gonio
+from mitsuba_powder.rendering.gonio_report import plot_gonio
 
 ROOT = Path(__file__).resolve().parents[2]
 PROPS = {"albedo": {"type": "rgb", "value": [0.85, 0.55, 0.3]}, "extinction": 1.0,

@@ -2,7 +2,7 @@
 
 Writes docs/figures/grain_colour.png and docs/grain_colour_table.md.
 Run from the repository root:  python docs/scripts/grain_colour.py [--quick]
-Everything optical comes from the powder plugin (mitsuba_powder.appearance.powder_colour, in
+Everything optical comes from the powder plugin (mitsuba_powder.plugin.appearance.powder_colour, in
 llvm_ad_spectral): the 0/d reflectance under D65 with the plugin's default BRDF parameters
 (amplitude_volume 1, g 0, extinction 1/um, Fresnel tau_o, no surface term).
 """
@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from docs_output import add_output_options, output_dir  # noqa: E402
 
-from mitsuba_powder.appearance import PowderColour, powder_colour  # noqa: E402
+from mitsuba_powder.plugin.appearance import PowderColour, powder_colour  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 SPHERE_RADII = [0.01, 0.017, 0.03, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0]

@@ -2,7 +2,7 @@
 
 Writes docs/figures/hematite_colour_vs_radius.png and docs/hematite_colour_table.md.
 Run from the repository root:  python docs/scripts/hematite_colour.py
-Everything optical comes from the powder plugin (mitsuba_powder.appearance.powder_colour).
+Everything optical comes from the powder plugin (mitsuba_powder.plugin.appearance.powder_colour).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from docs_output import add_output_options, output_dir  # noqa: E402
 
-from mitsuba_powder.appearance import powder_colour  # noqa: E402
+from mitsuba_powder.plugin.appearance import powder_colour  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 RADII = [0.01, 0.017, 0.03, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0, 3.0]

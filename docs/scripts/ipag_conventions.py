@@ -4,7 +4,7 @@ Writes docs/figures/ipag_conventions.png. Run from the repo root:
 
     python docs/scripts/ipag_conventions.py [--out FOLDER]
 
-The angles written on the figure come from the package (``mitsuba_powder.ipag.from_project``
+The angles written on the figure come from the package (``mitsuba_powder.io.ipag.from_project``
 and ``to_project``), so the figure shows what the code does, not a separate drawing of it.
 """
 
@@ -20,8 +20,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from docs_output import add_output_options, output_dir  # noqa: E402
 
-from mitsuba_powder.ipag import from_project, to_project  # noqa: E402
-from mitsuba_powder.measurements import gonio_directions  # noqa: E402
+from mitsuba_powder.io.ipag import from_project, to_project  # noqa: E402
+from mitsuba_powder.io.measurements import gonio_directions  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 THETA_I = 40.0

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 from docs_output import add_output_options, output_dir
 
-from mitsuba_powder.baselines import MODELS, fit_baseline
-from mitsuba_powder.fit import DEFAULT_STARTS, fit, predict
-from mitsuba_powder.fit_report import statistics, write_report
-from mitsuba_powder.measurements import load_measurements
+from mitsuba_powder.fitting.baselines import MODELS, fit_baseline
+from mitsuba_powder.fitting.fit import DEFAULT_STARTS, fit, predict
+from mitsuba_powder.fitting.report import statistics, write_report
+from mitsuba_powder.io.measurements import load_measurements
 
 ROOT = Path(__file__).resolve().parents[2]
 FREE = ["amplitude_volume", "g", "extinction", "albedo", "amplitude_surface",

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from docs_output import add_output_options, output_dir
 
-from mitsuba_powder.render import render_scene
+from mitsuba_powder.rendering.render import render_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 #: (title, scene, label per sample)

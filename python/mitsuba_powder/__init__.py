@@ -5,7 +5,8 @@ package folder (which holds ``plugins/powder.so``) to Mitsuba's file resolver, s
 ``mi.load_dict({'type': 'powder', ...})`` and ``<bsdf type="powder">`` work in every variant.
 
 It also checks that Dr.Jit's LLVM backend is usable (Debian 12's default libLLVM 15 makes
-it abort the process on the first kernel); see :func:`check_llvm`.
+it abort the process on the first kernel); see :func:`check_llvm`, and keeps the module names
+from before the sub-packages importable, with a deprecation warning (:mod:`._compat`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import mitsuba as mi
 
+from . import _compat
 from ._llvm import LLVMStatus, check_llvm
 
 __all__ = ["plugin_dir", "plugin_path", "register", "check_llvm", "LLVMStatus", "__version__"]
@@ -52,5 +54,6 @@ def register() -> None:
         resolver.prepend(folder)
 
 
+_compat.install()
 register()
 check_llvm(on_import=True)

@@ -21,8 +21,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from .params import load_properties
-    from .render import render_scene
+    from .plugin.params import load_properties
+    from .rendering.render import render_scene
 
     overrides = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
     props = (load_properties(args.params, None, overrides)
@@ -55,7 +55,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_colour(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .appearance import powder_colour
+    from .plugin.appearance import powder_colour
 
     if (args.radius2 is None) != (args.fraction2 is None):
         raise ValueError("give both --radius2 and --fraction2, or neither")
@@ -125,7 +125,7 @@ def _read_reflectance_csv(path: str) -> tuple:
 
 
 def _cmd_albedo(args: argparse.Namespace) -> int:
-    from .appearance import albedo_for_reflectance, reflectance_of_srgb, write_spectrum
+    from .plugin.appearance import albedo_for_reflectance, reflectance_of_srgb, write_spectrum
 
     if (args.reflectance is None) == (args.srgb is None):
         raise ValueError("give exactly one of --reflectance FILE.csv and --srgb R,G,B")
@@ -160,7 +160,7 @@ def _value(text: str):
 
 def _load_data(path: str, args: argparse.Namespace):
     """Load measurements (CSV, IPAG file or folder) and print what the loader did."""
-    from .measurements import load_measurements
+    from .io.measurements import load_measurements
 
     data = load_measurements(path, convention=args.convention, zero_error=args.zero_error)
     for line in data.comments:
@@ -197,8 +197,8 @@ def _add_data_options(p: argparse.ArgumentParser) -> None:
 def _cmd_fit(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .fit import default_free, fit, predict
-    from .fit_report import write_report
+    from .fitting.fit import default_free, fit, predict
+    from .fitting.report import write_report
 
     data = _load_data(args.data, args)
     if args.wavelength:
@@ -256,7 +256,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     for line in result.warnings:
         print(f"warning: {line}")
     if held is not None:
-        from .fit_report import statistics
+        from .fitting.report import statistics
 
         st = statistics(held[1], held[0])
         print(f"prediction of {st['n']} held-out measurements: relative RMSE "
@@ -271,9 +271,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .measurements import Measurements, save_measurements
-    from .params import load_properties
-    from .protocols import simulate
+    from .fitting.protocols import simulate
+    from .io.measurements import Measurements, save_measurements
+    from .plugin.params import load_properties
 
     wavelengths = args.wavelength or [700.0]
     parts = []
@@ -285,7 +285,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                         cat("brf"), cat("sigma") if args.noise > 0 else None,
                         parts[0].comments + [f"parameters from {args.params}"], "synthetic")
     if args.format == "ipag":
-        from .ipag import save_ipag
+        from .io.ipag import save_ipag
 
         save_ipag(args.out, data, layout=args.layout, sample=args.sample,
                   convention=args.convention)
@@ -299,7 +299,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_compare_models(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .model_comparison import compare_models, write_comparison
+    from .fitting.comparison import compare_models, write_comparison
 
     data = _load_data(args.data, args)
     if args.wavelength:
@@ -308,7 +308,7 @@ def _cmd_compare_models(args: argparse.Namespace) -> int:
             raise ValueError(f"--wavelength {args.wavelength}: not in {args.data}")
     free = [n.strip() for n in args.free.split(",")] if args.free else None
     fixed = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
-    from .model_comparison import surface_fresnel_settings
+    from .fitting.comparison import surface_fresnel_settings
 
     modes = surface_fresnel_settings(fixed)
     print(f"comparing the powder model (surface_fresnel: {', '.join(modes)}) with lambertian, "
@@ -322,10 +322,10 @@ def _cmd_compare_models(args: argparse.Namespace) -> int:
 
 
 def _cmd_render_gonio(args: argparse.Namespace) -> int:
-    from .gonio import render_gonio, render_measurements
-    from .gonio_report import write_gonio_report
-    from .params import load_properties
-    from .protocols import protocol_geometries
+    from .fitting.protocols import protocol_geometries
+    from .plugin.params import load_properties
+    from .rendering.gonio import render_gonio, render_measurements
+    from .rendering.gonio_report import write_gonio_report
 
     overrides = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
     kwargs = dict(spp=args.spp, resolution=args.resolution, source_radius=args.source_radius,
@@ -381,7 +381,7 @@ def _corners(text: str):
 
 
 def _cmd_compare_photo(args: argparse.Namespace) -> int:
-    from .photo_comparison import compare_images, read_image, write_report
+    from .rendering.photo import compare_images, read_image, write_report
 
     render = read_image(args.render, args.render_encoding)
     photo = read_image(args.photo, args.photo_encoding)
@@ -596,7 +596,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fit", help="fit the powder model to goniometer measurements")
     p.add_argument("data", help="measurement CSV, IPAG file, or folder of IPAG "
-                   "single-geometry files (see mitsuba_powder.measurements)")
+                   "single-geometry files (see mitsuba_powder.io.measurements)")
     p.add_argument("--wavelength", type=float, nargs="+", default=None,
                    help="fit only these wavelengths, nm (several: a joint fit)")
     p.add_argument("--free", default=None,

@@ -100,9 +100,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .fit import FITTABLE
-from .model import _forward_grad
-from .optimise import ParamSpec, batch_levenberg_marquardt
+from .fitting.fit import FITTABLE
+from .fitting.optimise import ParamSpec, batch_levenberg_marquardt
+from .plugin.brf import _forward_grad
 from .variants import use_variant
 
 __all__ = ["DEFAULT_FREE", "MAP_PROPERTIES", "MapsResult", "dome_directions", "fit_maps",
@@ -169,7 +169,7 @@ class GrainAlbedo:
     NODES = 3000
 
     def __init__(self, name: str, settings: Mapping):
-        from .grain_optics import GrainOptics
+        from .plugin.grains import GrainOptics
 
         if name not in GRAIN_MAPS:
             raise ValueError(f"{name!r} is not a per-pixel grain size; choose among "

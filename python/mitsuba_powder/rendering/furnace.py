@@ -17,8 +17,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..variants import check_variant, use_variant
 from .gonio import eval_channels, film_dict, film_weights, patch_dict, sensor_dict
-from .variants import check_variant, use_variant
 
 STRATEGIES = {"bsdf": (0, 1), "mis": (1, 1)}
 

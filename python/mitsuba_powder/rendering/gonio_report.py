@@ -1,4 +1,5 @@
-"""Reports of :func:`mitsuba_powder.gonio.render_gonio`: CSV, JSON summary and a figure."""
+"""Reports of :func:`mitsuba_powder.rendering.gonio.render_gonio`: CSV, JSON summary and a
+figure."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..outputs import output_file, output_path
 from .gonio import GonioResult
-from .outputs import output_file, output_path
 
 COLUMNS = ("theta_i", "theta_o", "phi", "wavelength", "channel", "brf_rendered", "stderr",
            "brf_analytic", "z")

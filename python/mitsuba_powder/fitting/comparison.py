@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.measurements import Measurements
+from ..outputs import output_path
 from .baselines import MODELS, fit_baseline
 from .fit import fit
-from .fit_report import statistics
-from .measurements import Measurements
-from .outputs import output_path
+from .report import statistics
 
 #: The powder model's rows, by its ``surface_fresnel`` setting
 POWDER_ROWS = {"none": "powder", "fresnel": "powder + surface Fresnel"}

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.measurements import Measurements
+from ..outputs import output_path
 from .fit import FitResult
-from .measurements import Measurements
-from .outputs import output_path
 
 
 def _signed_principal(data: Measurements) -> tuple[np.ndarray, np.ndarray]:

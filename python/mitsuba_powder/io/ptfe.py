@@ -1,5 +1,5 @@
 """Convert T. A. Germer's NIST PTFE BRDF data (Applied Optics 56(33), 9333, 2017) to the
-project's measurement format (:mod:`mitsuba_powder.measurements`).
+project's measurement format (:mod:`mitsuba_powder.io.measurements`).
 
 Source convention (``PTFE.data.csv``): ``lambda`` in micrometres; ``thetai`` stored negative
 with ``phi = 0``, i.e. the source sits at azimuth 180 deg; ``thetar``, ``phir`` the viewing

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _optics
+from .. import _optics
 
-_DATA = Path(__file__).resolve().parent / "data" / "optical_constants"
+_DATA = Path(__file__).resolve().parents[1] / "data" / "optical_constants"
 
 #: Grain models of the plugin's ``grains`` property (docs/model.md, "Grain models")
 GRAIN_MODELS = ("sphere", "agglomerate", "slab")

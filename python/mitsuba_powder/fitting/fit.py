@@ -2,13 +2,13 @@
 
 The loss is the weighted sum of squares ``sum_i ((BRF_model_i - BRF_i) / sigma_i)^2`` (sigma = 1
 when the data carry none), accumulated in float64; every row counts, replicated geometries
-included. The model is the C++ plugin: :class:`~mitsuba_powder.model.BatchBRF` evaluates it at
+included. The model is the C++ plugin: :class:`~mitsuba_powder.plugin.brf.BatchBRF` evaluates it at
 every geometry and wavelength for a whole batch of parameter sets in one Dr.Jit launch, and its
 Jacobian by forward-mode AD (one pass per property over the same traced graph). The grains'
-albedo comes from the plugin's Mie theory (:mod:`~mitsuba_powder.grain_optics`), with its
+albedo comes from the plugin's Mie theory (:mod:`~mitsuba_powder.plugin.grains`), with its
 radius derivatives.
 
-Strategy (:mod:`mitsuba_powder.optimise`): a scrambled Sobol design of starts over the
+Strategy (:mod:`mitsuba_powder.fitting.optimise`): a scrambled Sobol design of starts over the
 (log-)bounds; with the radius free, the radius of the starts runs over a log grid of the whole
 range (rho(r) from Mie theory has several branches) and is held during the global phase; all
 starts take batched Levenberg-Marquardt steps at once; the best few distinct end points are
@@ -37,17 +37,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .grain_optics import DEFAULT_FILL, GRAIN_VARIABLES, GrainOptics
-from .measurements import Measurements
-from .model import (
+from ..io.measurements import Measurements
+from ..plugin.brf import (
     VARIANT,
     BatchBRF,
     PowderBRF,
     batch_variant,
     engine_properties,
 )
+from ..plugin.grains import DEFAULT_FILL, GRAIN_VARIABLES, GrainOptics
+from ..variants import use_variant
 from .optimise import AGREEMENT, MultistartResult, ParamSpec, multistart, sobol_starts
-from .variants import use_variant
 
 FITTABLE: dict[str, ParamSpec] = {
     # A_v stays near 1 for real powders (docs/model.md); a wide range opens a degenerate valley
@@ -71,7 +71,7 @@ FITTABLE: dict[str, ParamSpec] = {
 #: The plugin's default radius (um), used when neither fitted nor given
 DEFAULT_RADIUS = 0.017
 
-#: Grain properties (:data:`~mitsuba_powder.grain_optics.GRAIN_VARIABLES`) set the albedo
+#: Grain properties (:data:`~mitsuba_powder.plugin.grains.GRAIN_VARIABLES`) set the albedo
 #: through the grain model; they are held in the global phase
 
 #: Properties that only configure the grain model (not fitted)
@@ -242,7 +242,8 @@ def _check_grain_model(free: list[str], fixed: dict) -> None:
 
 class Problem:
     """The least-squares problem in the optimiser's variables ``y`` (log10 for scale
-    parameters), batched over parameter sets (see :class:`mitsuba_powder.optimise.BatchProblem`).
+    parameters), batched over parameter sets (see
+    :class:`mitsuba_powder.fitting.optimise.BatchProblem`).
 
     Variables: one per free property; ``albedo`` once per wavelength when several are fitted.
     """

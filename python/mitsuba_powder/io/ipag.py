@@ -1,6 +1,6 @@
 """Read and write the text files of IPAG's spectro-goniometers (SHINE, SHADOWS) and SSHADE.
 
-:func:`mitsuba_powder.measurements.load_measurements` dispatches here; use it rather than the
+:func:`mitsuba_powder.io.measurements.load_measurements` dispatches here; use it rather than the
 readers below. Every file may end its lines with CRLF, LF or CR alone (old Macintosh files);
 text is UTF-8, or Latin-1 when it is not valid UTF-8.
 
@@ -27,7 +27,7 @@ error`` (tab- or space-separated; two columns: errors missing). A folder of them
 set of one sample; files of other extensions in it are ignored (and listed in the comments).
 
 Angle conventions (the project's: light at azimuth 0, ``theta_o`` signed, positive on the
-light's side; see :mod:`mitsuba_powder.measurements`):
+light's side; see :mod:`mitsuba_powder.io.measurements`):
 
 - ``signed`` (older IPAG files: a geometry-count line, every azimuth 0): the emergence is
   signed, positive on the forward (specular) side, so ``theta_o = -emergence, phi = 0``.
@@ -70,13 +70,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .measurements import (
+from ..outputs import note_input, output_file, output_path
+from .dataset import (
     MeasurementError,
     Measurements,
     _check_range,
     format_number,
 )
-from .outputs import note_input, output_file, output_path
 
 CONVENTIONS = ("signed", "physical")
 ZERO_ERROR = ("raise", "unweighted", "skip")

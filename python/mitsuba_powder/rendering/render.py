@@ -9,10 +9,10 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
-from .outputs import guarding_inputs, output_file
-from .params import check_property_names
+from ..outputs import guarding_inputs, output_file
+from ..plugin.params import check_property_names
+from ..variants import check_variant, use_variant
 from .scene_description import expanded_tree, scene_files, scene_with_properties
-from .variants import check_variant, use_variant
 
 __all__ = ["RenderResult", "apply_properties", "render_scene", "scene_files",
            "scene_with_properties"]
@@ -168,9 +168,9 @@ def render_scene(
             raise ValueError(
                 f"powder properties {', '.join(missing)} cannot be set on {scene}: the scene "
                 "does not expose them after loading (only differentiable properties that the "
-                "scene gives can change; see mitsuba_powder.render.apply_properties). Set them "
-                "in the scene file, or allow rendering without them (allow_missing=True, "
-                "--allow-missing)")
+                "scene gives can change; see "
+                "mitsuba_powder.rendering.render.apply_properties). Set them in the scene file, "
+                "or allow rendering without them (allow_missing=True, --allow-missing)")
         image = mi.render(loaded, spp=spp or 0)
         used_spp = spp or int(loaded.sensors()[0].sampler().sample_count())
         dr.eval(image)  # kernels run asynchronously: wait for them before stopping the clock

@@ -24,7 +24,7 @@ from pathlib import Path
 import colour
 import numpy as np
 
-from .outputs import note_input, output_file, output_path
+from ..outputs import note_input, output_file, output_path
 
 ENCODINGS = ("auto", "linear", "srgb")
 ALIGNMENTS = ("none", "exposure", "white-balance")
@@ -57,7 +57,7 @@ def read_image(path: str | Path, encoding: str = "auto") -> np.ndarray:
     elif suffix in (".png", ".jpg", ".jpeg"):
         import mitsuba as mi
 
-        from .variants import use_variant
+        from ..variants import use_variant
 
         # mi.Bitmap needs a variant, any will do: the caller's, else scalar_rgb
         with use_variant(mi.variant() or "scalar_rgb"):

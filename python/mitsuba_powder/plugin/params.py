@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .outputs import note_input
+from ..outputs import note_input
 
 #: Every property the ``powder`` plugin's constructor reads (its doc comment's parameter table;
 #: tests/test_params_doc.py checks that the two lists agree)

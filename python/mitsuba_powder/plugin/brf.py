@@ -6,7 +6,7 @@
 - :class:`BatchBRF`: the fit's engine: one ``llvm_ad_spectral`` instance evaluates every row
   of every wavelength for a batch of parameter sets in one launch, with forward-mode
   derivatives; it takes the albedo and tau_o as numbers (from
-  :mod:`mitsuba_powder.grain_optics`) and equals :class:`PowderBRF` to float precision.
+  :mod:`mitsuba_powder.plugin.grains`) and equals :class:`PowderBRF` to float precision.
 
 Any wavelength the optical constants cover works (e.g. 351 and 1064 nm for PTFE).
 """
@@ -17,9 +17,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .grain_optics import DEFAULT_MATERIAL
-from .measurements import Measurements
-from .variants import use_variant
+from ..io.measurements import Measurements
+from ..variants import use_variant
+from .grains import DEFAULT_MATERIAL
 
 VARIANT = "llvm_ad_mono"
 
@@ -80,7 +80,7 @@ def batch_variant(wavelengths: np.ndarray) -> str:
 _KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
 
 #: Plugin properties that describe the grains: :class:`BatchBRF` takes the albedo and tau_o
-#: they give as numbers (see :mod:`mitsuba_powder.grain_optics`)
+#: they give as numbers (see :mod:`mitsuba_powder.plugin.grains`)
 GRAIN_PROPERTIES = ("radius", "radius2", "fraction2", "grains", "agglomerate_radius",
                     "agglomerate_fill", "mixing", "material", "eta", "k")
 #: The grain material's index, which the surface term reads with surface_fresnel = "fresnel"

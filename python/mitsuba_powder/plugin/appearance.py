@@ -14,7 +14,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .variants import use_variant
+from ..variants import use_variant
 
 #: Default wavelength grid (nm) of the reported spectra
 WAVELENGTHS_NM = np.arange(360.0, 831.0, 5.0)
@@ -63,7 +63,7 @@ class PowderColour:
 
 def _spectral_variant() -> str:
     if "llvm_ad_spectral" in mi.variants() and dr.has_backend(dr.JitBackend.LLVM):
-        from ._llvm import check_llvm
+        from .._llvm import check_llvm
 
         if check_llvm().usable:
             return "llvm_ad_spectral"
@@ -291,9 +291,9 @@ def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: in
         ValueError: a target the model cannot reach (naming the wavelength, the value and the
             reachable range), a bad geometry, or bad arrays or properties.
     """
-    from .grain_optics import GrainOptics
-    from .measurements import Measurements
-    from .model import BatchBRF, batch_variant
+    from ..io.measurements import Measurements
+    from .brf import BatchBRF, batch_variant
+    from .grains import GrainOptics
 
     wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=np.float64))
     target = np.atleast_1d(np.asarray(reflectance, dtype=np.float64))
@@ -361,7 +361,7 @@ def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: in
 def write_spectrum(path, wavelengths_nm, values) -> None:
     """A Mitsuba spectrum file (``<spectrum filename="..."/>``): one ``wavelength value`` line
     per wavelength (nm), increasing."""
-    from .outputs import output_file
+    from ..outputs import output_file
 
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
     order = np.argsort(wl)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .measurements import Measurements
+from ..io.measurements import Measurements
 
 PROTOCOLS = ("shadows", "backscatter")
 
@@ -39,7 +39,7 @@ def protocol_geometries(names: list[str] | str) -> tuple[np.ndarray, np.ndarray,
     parts = [geometries(n) for n in names]
     ti, to, ph = (np.concatenate([p[k] for p in parts]) for k in range(3))
     # (theta_o, phi) and (-theta_o, phi + 180) and theta_o = 0 at any phi coincide
-    from .measurements import gonio_directions
+    from ..io.measurements import gonio_directions
 
     wi, wo = gonio_directions(ti, to, ph)
     _, first = np.unique(np.round(np.concatenate([wi, wo], 1), 9), axis=0, return_index=True)
@@ -62,7 +62,7 @@ def simulate(properties: dict, protocols: list[str] | str, wavelengths=(700.0,),
     Returns:
         :class:`Measurements` labelled as synthetic in its comments.
     """
-    from .model import PowderBRF
+    from ..plugin.brf import PowderBRF
 
     if noise < 0:
         raise ValueError(f"noise = {noise} is out of range; valid range is [0, inf)")

@@ -38,8 +38,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .measurements import Measurements, gonio_directions
-from .variants import check_variant, use_variant
+from ..io.measurements import Measurements, gonio_directions
+from ..variants import check_variant, use_variant
 
 SOURCE_DISTANCE = 1.0e4  # scene units; the visible patch is ~3 units wide
 CAMERA_DISTANCE = 10.0

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .measurements import Measurements
+from ..io.measurements import Measurements
 from .optimise import ParamSpec, finite_difference_jacobian, multistart, sobol_starts
 
 
@@ -207,7 +207,7 @@ class BaselineFit:
 
 class _BaselineProblem:
     """Weighted BRF residuals of a NumPy baseline, batched over parameter sets (for
-    :func:`mitsuba_powder.optimise.multistart`); the Jacobian by central differences."""
+    :func:`mitsuba_powder.fitting.optimise.multistart`); the Jacobian by central differences."""
 
     def __init__(self, func: Callable, specs: dict[str, ParamSpec], wi: np.ndarray,
                  wo: np.ndarray, brf: np.ndarray, weights: np.ndarray):
@@ -233,9 +233,9 @@ class _BaselineProblem:
 def fit_baseline(model: str, data: Measurements, starts: int = 32, seed: int = 0,
                  polish: int = 2) -> list[BaselineFit]:
     """Fit a baseline at each wavelength of ``data``: weighted least squares on the BRF with
-    the package's optimiser (:func:`mitsuba_powder.optimise.multistart`: Sobol starts, batched
-    Levenberg-Marquardt, the best ``polish`` end points refined by ``scipy``), Jacobian by
-    central differences."""
+    the package's optimiser (:func:`mitsuba_powder.fitting.optimise.multistart`: Sobol starts,
+    batched Levenberg-Marquardt, the best ``polish`` end points refined by ``scipy``), Jacobian
+    by central differences."""
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; models: {', '.join(MODELS)}")
     if starts < 1:
