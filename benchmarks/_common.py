@@ -24,6 +24,12 @@ def arg_parser(doc: str) -> argparse.ArgumentParser:
     return parser
 
 
+def throughput_sizes(quick: bool, pairs: int, repeat: int) -> tuple[int, int, int]:
+    """(direction pairs per JIT call, Python-level calls of a scalar variant, repeats) of a
+    BSDF throughput run: ``pairs`` and ``repeat`` at full size, tiny ones with ``quick``."""
+    return (1024, 200, 2) if quick else (pairs, 20_000, repeat)
+
+
 def use_variant(variant: str) -> None:
     """Select a Mitsuba variant (it stays selected) and make the powder plugin findable in it
     (:func:`mitsuba_powder.variants.set_variant`)."""

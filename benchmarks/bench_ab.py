@@ -27,6 +27,7 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
+from registry import AB_COLUMNS
 
 from _common import (
     arg_parser,
@@ -110,12 +111,7 @@ def main() -> None:
         rows = []
         for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
             rows += measure(variant, folder, n, repeat)
-    print_table(rows, [("variant", "variant", "s"), ("configuration", "configuration", "s"),
-                       ("baseline_vs_principled", "baseline / principled", ".2f"),
-                       ("new_vs_principled", "new / principled", ".2f"),
-                       ("new_vs_baseline", "new / baseline", ".3f"),
-                       ("new_vs_baseline_fastest", "fastest new / fastest baseline", ".3f"),
-                       ("max_rel_difference", "max rel. difference", ".1e")])
+    print_table(rows, AB_COLUMNS)
     save(args.out, "ab", rows, args.quick, pairs=n, repeats=repeat,
          baseline=str(args.baseline) if args.baseline else "installed (control)")
     barh_figure(args.out / "ab.png", [f"{r['variant'][8:]}: {r['configuration']}" for r in rows],

@@ -20,7 +20,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from _common import arg_parser, print_table, pyplot, save, save_figure, use_variant
+from _common import (
+    arg_parser,
+    print_table,
+    pyplot,
+    save,
+    save_figure,
+    throughput_sizes,
+    use_variant,
+)
 
 BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
 BSDFS = {
@@ -154,9 +162,7 @@ def bench_scalar(props: dict, n: int) -> dict:
 def main() -> None:
     parser = arg_parser(__doc__)
     args = parser.parse_args()
-    n_jit = 1024 if args.quick else 1 << 22
-    n_scalar = 200 if args.quick else 20_000
-    repeat = 2 if args.quick else 9
+    n_jit, n_scalar, repeat = throughput_sizes(args.quick, 1 << 22, 9)
     variants = ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
     rows = []
     for variant in variants:

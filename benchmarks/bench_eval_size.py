@@ -30,6 +30,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from registry import EVAL_SIZE_COLUMNS
 
 from _common import (
     arg_parser,
@@ -98,13 +99,7 @@ def main() -> None:
     rows = []
     for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
         rows += measure(variant, sizes, repeat)
-    print_table(rows, [("variant", "variant", "s"), ("log2_pairs", "log2 pairs", "d"),
-                       ("powder_ms", "powder ms", ".3f"),
-                       ("principled_ms", "principled ms", ".3f"),
-                       ("coloured_ms", "coloured principled ms", ".3f"),
-                       ("floor_ms", "memory floor ms", ".3f"),
-                       ("cost_vs_principled", "cost / principled", ".2f"),
-                       ("cost_vs_coloured", "cost / coloured principled", ".2f")])
+    print_table(rows, EVAL_SIZE_COLUMNS)
     save(args.out, "eval_size", rows, args.quick, repeats=repeat,
          threads=dr.thread_count())
     plt = pyplot()

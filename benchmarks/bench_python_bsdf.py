@@ -15,9 +15,10 @@ import time
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from registry import PYTHON_BSDF_COLUMNS
 
 import python_powder
-from _common import arg_parser, barh_figure, print_table, save, use_variant
+from _common import arg_parser, barh_figure, print_table, save, throughput_sizes, use_variant
 from bench_bsdf import bench_jit, bench_scalar, directions
 
 PROPS = {"albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3, "tau_o": 2.0 / 3.0,
@@ -79,9 +80,7 @@ def max_relative_difference(n: int) -> float:
 def main() -> None:
     parser = arg_parser(__doc__)
     args = parser.parse_args()
-    n_jit = 1024 if args.quick else 1 << 21
-    n_scalar = 200 if args.quick else 20_000
-    repeat = 2 if args.quick else 7
+    n_jit, n_scalar, repeat = throughput_sizes(args.quick, 1 << 21, 7)
     rows = []
     for variant in ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_spectral"]:
         use_variant(variant)
@@ -108,14 +107,7 @@ def main() -> None:
         py["render_first_cpp_speedup"] = py["render_first_s"] / cpp["render_first_s"]
     print(f"M calls/s (JIT: {n_jit} pairs per call; scalar: Python-level calls); render: patch "
           "under a uniform sky, direct/MIS; speedup = C++ over Python")
-    print_table(rows, [("variant", "variant", "s"), ("implementation", "impl", "s"),
-                       ("eval", "eval M/s", ".3f"), ("sample", "sample M/s", ".3f"),
-                       ("eval_pdf", "eval_pdf M/s", ".3f"),
-                       ("eval_cpp_speedup", "eval speedup", ".2f"),
-                       ("render_first_s", "1st render s", ".3f"),
-                       ("render_s", "render s", ".3f"),
-                       ("render_cpp_speedup", "render speedup", ".2f"),
-                       ("max_rel_difference", "max rel diff", ".1e")])
+    print_table(rows, PYTHON_BSDF_COLUMNS)
     save(args.out, "python_bsdf", rows, args.quick)
     barh_figure(args.out / "python_bsdf.png",
                 [f"{r['variant']}\n{r['implementation']}" for r in rows],

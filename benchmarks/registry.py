@@ -99,6 +99,35 @@ def _fit(data: dict) -> str:
         ("before_s", "before: s", ".2f"), ("before_evaluations", "before: evaluations", "d")])
 
 
+#: tables that a script prints as they appear on docs/benchmarks.md
+EVAL_SIZE_COLUMNS: list[Column] = [
+    ("variant", "variant", "s"), ("log2_pairs", "log2 pairs", "d"),
+    ("powder_ms", "powder ms", ".3f"), ("principled_ms", "principled ms", ".3f"),
+    ("coloured_ms", "coloured principled ms", ".3f"),
+    ("floor_ms", "memory floor ms", ".3f"),
+    ("cost_vs_principled", "eval cost / principled", ".2f"),
+    ("cost_vs_coloured", "eval cost / coloured principled", ".2f")]
+
+AB_COLUMNS: list[Column] = [
+    ("variant", "variant", "s"), ("configuration", "configuration", "s"),
+    ("baseline_vs_principled", "baseline / principled", ".2f"),
+    ("new_vs_principled", "new / principled", ".2f"),
+    ("new_vs_baseline", "new / baseline", ".3f"),
+    ("new_vs_baseline_fastest", "fastest new / fastest baseline", ".3f"),
+    ("max_rel_difference", "max rel. difference", ".1e")]
+
+PYTHON_BSDF_COLUMNS: list[Column] = [
+    ("variant", "variant", "s"), ("implementation", "implementation", "s"),
+    ("eval", "eval M/s", ".3g"), ("sample", "sample M/s", ".3g"),
+    ("eval_pdf", "eval_pdf M/s", ".3g"),
+    ("eval_cpp_speedup", "C++ eval speedup", ".1f"),
+    ("sample_cpp_speedup", "C++ sample speedup", ".1f"),
+    ("render_first_s", "first render s (compiles)", ".3f"),
+    ("render_s", "render s", ".3f"),
+    ("render_cpp_speedup", "C++ render speedup", ".1f"),
+    ("max_rel_difference", "max rel. difference", ".1e")]
+
+
 @dataclass(frozen=True)
 class Benchmark:
     """One benchmark script and what it produces."""
@@ -129,36 +158,15 @@ BENCHMARKS: tuple[Benchmark, ...] = (
             ("volume", "volume constants", "s"), ("ms", "eval ms", ".2f"),
             ("cost_vs_principled", "eval cost / principled", ".2f")])}),
     Benchmark("bench_eval_size.py", "eval_size", ("log2 pairs", "cost / coloured principled"), {
-        "eval_size": _rows([
-            ("variant", "variant", "s"), ("log2_pairs", "log2 pairs", "d"),
-            ("powder_ms", "powder ms", ".3f"), ("principled_ms", "principled ms", ".3f"),
-            ("coloured_ms", "coloured principled ms", ".3f"),
-            ("floor_ms", "memory floor ms", ".3f"),
-            ("cost_vs_principled", "eval cost / principled", ".2f"),
-            ("cost_vs_coloured", "eval cost / coloured principled", ".2f")])}),
+        "eval_size": _rows(EVAL_SIZE_COLUMNS)}),
     Benchmark("bench_ab.py", "ab", ("new / baseline", "max rel. difference"), {
-        "ab": _rows([
-            ("variant", "variant", "s"), ("configuration", "configuration", "s"),
-            ("baseline_vs_principled", "baseline / principled", ".2f"),
-            ("new_vs_principled", "new / principled", ".2f"),
-            ("new_vs_baseline", "new / baseline", ".3f"),
-            ("new_vs_baseline_fastest", "fastest new / fastest baseline", ".3f"),
-            ("max_rel_difference", "max rel. difference", ".1e")])}),
+        "ab": _rows(AB_COLUMNS)}),
     Benchmark("bench_jit_ops.py", "jit_ops", ("ms per op", "cost / fma"), {
         "jit_ops": _rows([
             ("operation", "operation", "s"), ("ms", "ms per operation", ".3f"),
             ("cost_vs_fma", "cost / fma", ".1f")])}),
     Benchmark("bench_python_bsdf.py", "python_bsdf", ("eval speedup", "render speedup"), {
-        "python_bsdf": _rows([
-            ("variant", "variant", "s"), ("implementation", "implementation", "s"),
-            ("eval", "eval M/s", ".3g"), ("sample", "sample M/s", ".3g"),
-            ("eval_pdf", "eval_pdf M/s", ".3g"),
-            ("eval_cpp_speedup", "C++ eval speed-up", ".1f"),
-            ("sample_cpp_speedup", "C++ sample speed-up", ".1f"),
-            ("render_first_s", "first render s (compiles)", ".3f"),
-            ("render_s", "render s", ".3f"),
-            ("render_cpp_speedup", "C++ render speed-up", ".1f"),
-            ("max_rel_difference", "max rel. difference", ".1e")])}),
+        "python_bsdf": _rows(PYTHON_BSDF_COLUMNS)}),
     Benchmark("bench_render.py", "render", ("gain", "DE00 mean", "cost/diffuse"), {
         "sampling": _meta("sampling", [
             ("case", "case", "s"), ("spp", "spp", "d"),

@@ -23,6 +23,17 @@ def add_output_options(parser: argparse.ArgumentParser, committed: Path, what: s
                        help=f"write into {committed}, replacing the committed {what}")
 
 
+def docs_parser(doc: str, committed: Path, what: str,
+                quick: str | None = None) -> argparse.ArgumentParser:
+    """A docs script's parser: its docstring's first line, the output options of
+    :func:`add_output_options` and, with ``quick`` (its help text), ``--quick``."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    add_output_options(parser, committed, what)
+    if quick is not None:
+        parser.add_argument("--quick", action="store_true", help=quick)
+    return parser
+
+
 def output_dir(args: argparse.Namespace, committed: Path) -> Path:
     """The folder to write to (created), as chosen by :func:`add_output_options`."""
     if args.refresh_docs:

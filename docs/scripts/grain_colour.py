@@ -9,7 +9,6 @@ llvm_ad_spectral): the 0/d reflectance under D65 with the plugin's default BRDF 
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from docs_output import add_output_options, output_dir  # noqa: E402
+from docs_output import docs_parser, output_dir  # noqa: E402
 
 from mitsuba_powder.plugin.appearance import PowderColour, powder_colour  # noqa: E402
 
@@ -29,21 +28,26 @@ FILLS = [0.3, 0.45, 0.6]
 SLAB_RADII = [0.25, 0.5, 1.0, 2.0, 3.0]
 CRYSTALLITE = 0.017  # um: samples 1-4 (Table 2 effective radii 15-17 nm)
 
+
+
+def _agglomerate_1_4(radius: float) -> dict:
+    """Samples 1-4 as agglomerates (radius 0.2 um, fill 0.4) of crystallites of ``radius``
+    (um)."""
+    return {"grains": "agglomerate", "radius": radius, "agglomerate_radius": 0.2,
+            "agglomerate_fill": 0.4}
+
+
 #: The paper's seven samples: the isolated-sphere model (scenes/showcase.xml) and the grain
 #: model argued from the paper's description (scenes/showcase_grains.xml, its defaults)
 SAMPLES = [
     ("1", {"radius": 0.017},
-     {"grains": "agglomerate", "radius": 0.017, "agglomerate_radius": 0.2,
-      "agglomerate_fill": 0.4}),
+     _agglomerate_1_4(0.017)),
     ("2", {"radius": 0.016},
-     {"grains": "agglomerate", "radius": 0.016, "agglomerate_radius": 0.2,
-      "agglomerate_fill": 0.4}),
+     _agglomerate_1_4(0.016)),
     ("3", {"radius": 0.016},
-     {"grains": "agglomerate", "radius": 0.016, "agglomerate_radius": 0.2,
-      "agglomerate_fill": 0.4}),
+     _agglomerate_1_4(0.016)),
     ("4", {"radius": 0.015},
-     {"grains": "agglomerate", "radius": 0.015, "agglomerate_radius": 0.2,
-      "agglomerate_fill": 0.4}),
+     _agglomerate_1_4(0.015)),
     ("5", {"radius": 0.083, "radius2": 0.046, "fraction2": 0.5},
      {"radius": 0.083, "radius2": 0.046, "fraction2": 0.5}),
     ("6", {"radius": 0.687, "radius2": 0.043, "fraction2": 0.5},
@@ -75,10 +79,8 @@ def describe(props: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_output_options(parser, ROOT / "docs", "grain_colour_table.md and figures/grain_colour.png")
-    parser.add_argument("--quick", action="store_true", help="few sizes, coarse quadrature")
-    args = parser.parse_args()
+    args = docs_parser(__doc__, ROOT / "docs", "grain_colour_table.md and figures/grain_colour.png",
+                       quick="few sizes, coarse quadrature").parse_args()
     args.out = output_dir(args, ROOT / "docs")
     samples = 256 if args.quick else 2048
     pick = (lambda v: v[::3]) if args.quick else (lambda v: v)

@@ -10,14 +10,13 @@ Writes docs/ptfe_fits.md and docs/figures/ptfe/*.png. Run from the repository ro
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
-from docs_output import add_output_options, output_dir
+from docs_output import docs_parser, output_dir
 
 from mitsuba_powder.fitting.baselines import MODELS, fit_baseline
 from mitsuba_powder.fitting.fit import DEFAULT_STARTS, fit, predict
@@ -31,10 +30,8 @@ FIXED = {"eta": 1.35, "k": 0.0}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_output_options(parser, ROOT / "docs", "ptfe_fits.md and figures/ptfe")
-    parser.add_argument("--quick", action="store_true", help="one wavelength, eight starts")
-    args = parser.parse_args()
+    args = docs_parser(__doc__, ROOT / "docs", "ptfe_fits.md and figures/ptfe",
+                       quick="one wavelength, eight starts").parse_args()
     args.out = output_dir(args, ROOT / "docs")
     data = load_measurements(ROOT / "measurements" / "ptfe_germer2017.csv")
     wavelengths = [532.0] if args.quick else [351.0, 532.0, 633.0, 1064.0]
