@@ -101,7 +101,7 @@ import mitsuba as mi
 import numpy as np
 
 from .fit import FITTABLE
-from .model import _forward_grad
+from .model import forward_grad
 from .optimise import ParamSpec, batch_levenberg_marquardt
 from .variants import use_variant
 
@@ -439,7 +439,7 @@ class _Evaluator:
             dr.eval(out)
             value = np.array(out, dtype=np.float64).reshape(3, p, k).transpose(1, 2, 0)
             for name in derivatives:
-                grads[name] = _forward_grad(sources[name], out).reshape(3, p, k
+                grads[name] = forward_grad(sources[name], out).reshape(3, p, k
                                                                          ).transpose(1, 2, 0)
                 dr.disable_grad(sources[name])
         return value, grads
