@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from _common import arg_parser, barh_figure
-from mitsuba_powder import rti_fit as rf
+from mitsuba_powder import rti as rf
 
 
 def _peak_rss_mb() -> float:

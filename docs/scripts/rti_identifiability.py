@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_powder import rti_fit as rf
+from mitsuba_powder import rti as rf
 
 FREE = ("radius", "amplitude_volume", "extinction")
 HELD = ("g", "amplitude_surface", "correlation_length")

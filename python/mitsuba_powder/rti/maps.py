@@ -1,4 +1,4 @@
-"""Powder maps on disk: a :func:`mitsuba_powder.rti_fit.fit_maps` result as EXR maps, ``fit.json``
+"""Powder maps on disk: a :func:`mitsuba_powder.rti.fit_maps` result as EXR maps, ``fit.json``
 and a Mitsuba scene, read back for relighting.
 
 A maps folder holds:
@@ -18,7 +18,7 @@ A maps folder holds:
   and lit by a directional emitter of irradiance ``$irradiance`` from ``($lx, $ly, $lz)``
   (towards the light, image frame). It renders with ``mitsuba scene.xml -D lx=... -D ly=...
   -D lz=...`` and with ``mitsuba-powder render``; with the ``direct`` integrator a pixel is the
-  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti_fit.relight` predicts.
+  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti.relight` predicts.
 
 Maps are written with row 0 at the top of the image (as the capture); the scene's bitmaps map
 them onto the rectangle with ``to_uv`` flipping v (Mitsuba's rectangle has v up, its bitmaps
@@ -33,10 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .outputs import guarding_inputs, note_input, note_inputs, output_path
-from .rti import Capture, read_lp, write_images
-from .rti_fit import GRAIN_MAPS, GRAIN_SETTINGS, MapsResult
-from .variants import use_variant
+from ..outputs import guarding_inputs, note_input, note_inputs, output_path
+from ..variants import use_variant
+from .capture import Capture, read_lp, write_images
+from .properties import GRAIN_MAPS, MAP_GRAIN_SETTINGS
+from .result import MapsResult
 
 #: File written for the scene's normal map (tangent space, encoded (n + 1) / 2)
 NORMAL_TANGENT = "normal_tangent.exr"
@@ -90,7 +91,7 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
 
     grain_maps = [name for name in result.maps if name in GRAIN_MAPS]
     if not grain_maps:  # the albedo map replaces the grains: the plugin takes one or the other
-        settings = {k: v for k, v in settings.items() if k not in GRAIN_SETTINGS}
+        settings = {k: v for k, v in settings.items() if k not in MAP_GRAIN_SETTINGS}
     props = []
     for key, value in settings.items():
         if isinstance(value, bool) or value is None:
@@ -108,7 +109,8 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
   (lx, ly, lz) (towards the light; x right, y up, z towards the camera), e.g.
     mitsuba scene.xml -D lx=0.5 -D ly=0 -D lz=0.866 -o relit.exr
     mitsuba-powder render scene.xml -o relit.exr -D lx=0.5 -D ly=0 -D lz=0.866
-  A pixel is E f (n . l) (direct illumination; E = $irradiance), as rti_fit.relight predicts.
+  A pixel is E f (n . l) (direct illumination; E = $irradiance), as
+  mitsuba_powder.rti.relight predicts.
 -->
 <scene version="3.0.0">
     <default name="spp" value="4"/>
@@ -168,7 +170,7 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
     """Write a fit to ``out_dir`` (module docstring); returns the path of ``fit.json``.
 
     Args:
-        result: a :func:`mitsuba_powder.rti_fit.fit_maps` result.
+        result: a :func:`mitsuba_powder.rti.fit_maps` result.
         out_dir: output folder (created).
         capture: the fitted capture (its encoding, bit depth and file format are recorded, so
             that :func:`relight_files` writes matching images).

@@ -33,11 +33,11 @@ Bases (per channel; values in the capture's linear units):
 * ``lambertian``, photometric stereo (Woodham, "Photometric method for determining surface
   orientation from multiple images", Opt. Eng. 19, 1980): value = ``b . l``, 3 functions
   ``lx, ly, lz``, with ``b = albedo * normal`` per channel; the prediction is NOT clamped at
-  zero (lights behind the local tangent plane give negative values), as in the project's issue
-  #13 measurement. The normal map is ``b`` summed over channels, normalised; the albedo of a
+  zero (lights behind the local tangent plane give negative values): the plain linear model of
+  photometric stereo. The normal map is ``b`` summed over channels, normalised; the albedo of a
   channel is ``|b|``.
-* ``lambertian_clamped``: the same fit (unclamped least squares), predicting ``max(0, b . l)``.
-  The issue's Lambertian numbers on RealRTI item 7 (9.9 and 8.3) are this model's (docs/rti.md).
+* ``lambertian_clamped``: the same fit (unclamped least squares), predicting ``max(0, b . l)``,
+  the attached shadow of a Lambertian surface (docs/rti.md scores both on RealRTI captures).
 """
 
 from __future__ import annotations

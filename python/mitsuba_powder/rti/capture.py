@@ -51,7 +51,8 @@ from pathlib import Path
 import colour
 import numpy as np
 
-from .outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
+from ..outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
+from ..variants import use_variant
 
 __all__ = ["Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
            "lp_image_paths", "read_image", "read_lp", "read_mask", "write_images", "write_lp"]
@@ -251,8 +252,6 @@ def _bitmap(path: Path):
     """(raw array (H, W, C), file format, bit depth) of an image file, through mi.Bitmap."""
     import mitsuba as mi
 
-    from .variants import use_variant
-
     with use_variant(mi.variant() or "scalar_rgb"):
         bmp = mi.Bitmap(str(path))
         fmt = bmp.component_format()
@@ -418,8 +417,6 @@ def write_images(capture_like: Capture, images: np.ndarray,
             (a ValueError) for a name or target that is refused.
     """
     import mitsuba as mi
-
-    from .variants import use_variant
 
     imgs = np.asarray(images)
     if imgs.ndim == 3:
