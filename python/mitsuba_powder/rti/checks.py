@@ -1,5 +1,6 @@
-"""Checks of the RTI fit's inputs: light directions, numbers in a range, counts, normals,
-images and light gains; each error names the argument, its value and the valid range."""
+"""Checks of the RTI inputs (the per-pixel fit's, the forward model's, the baselines' light
+directions): light directions, numbers in a range, counts, normals, images and light gains;
+each error names the argument, its value and the valid range."""
 
 from __future__ import annotations
 
