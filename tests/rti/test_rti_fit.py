@@ -319,7 +319,7 @@ def test_per_pixel_grain_radius_is_recovered():
     """SYNTHETIC capture of hematite whose grain radius differs per region (the albedo per
     channel follows from it, GrainAlbedo), 1 % noise, 8 held-out lights: the radius is fitted
     per pixel (1 number instead of 3 albedos) through the chain rule of rho(r), and recovered
-    per region; calibrated gains; A_v, g and extinction held (not identifiable, module doc).
+    per region; calibrated gains; A_v, g and extinction held (not identifiable, rti.fit module doc).
     Measured: radius medians within 1 %, normal medians 1.0-2.3 degrees, held-out RMS 1.5 x
     the noise."""
     maps, region = rf.synthetic_maps(24, 24, relief=0.25, seed=0)
