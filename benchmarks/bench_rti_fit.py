@@ -1,4 +1,4 @@
-"""Benchmark of :func:`mitsuba_powder.rti_fit.fit_maps` on SYNTHETIC RTI captures.
+"""Benchmark of :func:`mitsuba_powder.rti.fit_maps` on SYNTHETIC RTI captures.
 
 Times the per-pixel powder fit (default free set, per-light gains fitted) and records the
 process's peak resident memory, for a 256 x 256 capture of 40 lights and, with ``--full``, a
@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from _common import arg_parser, barh_figure
-from mitsuba_powder import rti_fit as rf
+from mitsuba_powder import rti as rf
 
 
 def _peak_rss_mb() -> float:

@@ -24,9 +24,15 @@ from mitsuba_powder.outputs import (
     output_names,
     output_path,
 )
-from mitsuba_powder.rti import Capture, write_images, write_lp
-from mitsuba_powder.rti_fit import MapsResult, synthetic_capture, synthetic_maps
-from mitsuba_powder.rti_maps import write_maps
+from mitsuba_powder.rti import (
+    Capture,
+    MapsResult,
+    synthetic_capture,
+    synthetic_maps,
+    write_images,
+    write_lp,
+)
+from mitsuba_powder.rti.maps import write_maps
 from mitsuba_powder.variants import use_variant
 
 

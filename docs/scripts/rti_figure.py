@@ -28,10 +28,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from docs_output import add_output_options, output_dir  # noqa: E402
 
-from mitsuba_powder.rti import Capture, encode, load_capture  # noqa: E402
-from mitsuba_powder.rti_baselines import fit_baseline  # noqa: E402
-from mitsuba_powder.rti_compare import held_out  # noqa: E402
-from mitsuba_powder.rti_fit import fit_maps, synthetic_capture  # noqa: E402
+from mitsuba_powder.rti import (  # noqa: E402
+    Capture,
+    encode,
+    fit_maps,
+    load_capture,
+    synthetic_capture,
+)
+from mitsuba_powder.rti.baselines import fit_baseline  # noqa: E402
+from mitsuba_powder.rti.comparison import held_out  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 BASELINES = ("ptm", "hsh", "lambertian_clamped")

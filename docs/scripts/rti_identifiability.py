@@ -1,9 +1,9 @@
 """What an RTI dome determines: Cramer-Rao bounds of per-pixel powder properties.
 
-For each region of ``rti_fit.SYNTHETIC_GRAIN_REGIONS`` (hematite grain radius, A_v and
+For each region of ``rti.SYNTHETIC_GRAIN_REGIONS`` (hematite grain radius, A_v and
 extinction differ; g and the surface lobe held), the 1-sigma bound of each free variable of one
 pixel is ``sqrt(diag((J^T J)^-1))`` with J the Jacobian of the pixel's 3 x K values (central
-differences of ``rti_fit.render_capture``, in log radius, log A_v, log extinction and the two
+differences of ``rti.render_capture``, in log radius, log A_v, log extinction and the two
 normal slopes) divided by the noise (1 % of full scale, the brightest noise-free value 0.9).
 Two light sets of 40: the 10-80 degree dome, and the same with 8 lights at 82-88 degrees
 (2-8 degrees from the camera; ``synthetic_capture(near_camera=8)``). Prints a Markdown table.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_powder import rti_fit as rf
+from mitsuba_powder import rti as rf
 
 FREE = ("radius", "amplitude_volume", "extinction")
 HELD = ("g", "amplitude_surface", "correlation_length")

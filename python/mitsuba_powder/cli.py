@@ -433,8 +433,8 @@ def _fixed_properties(items: list[str]) -> dict:
 
 
 def _powder_fitter(free: list[str] | None, fixed: dict, progress=None):
-    """compare-maps' powder model: rti_fit.fit_maps with these settings."""
-    from .rti_fit import fit_maps
+    """compare-maps' powder model: rti.fit_maps with these settings."""
+    from .rti import fit_maps
 
     def fit(images, directions, mask=None):
         return fit_maps(images, directions, free=free, mask=mask, fixed=fixed,
@@ -444,9 +444,8 @@ def _powder_fitter(free: list[str] | None, fixed: dict, progress=None):
 
 
 def _cmd_fit_maps(args: argparse.Namespace) -> int:
-    from .rti import load_capture
-    from .rti_fit import fit_maps
-    from .rti_maps import write_maps
+    from .rti import fit_maps, load_capture
+    from .rti.maps import write_maps
 
     capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
     k, h, w, c = capture.images.shape
@@ -467,7 +466,7 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
-    from .rti_maps import relight_files
+    from .rti.maps import relight_files
 
     paths = relight_files(args.maps, args.lp, args.out)
     print(f"wrote {len(paths)} images to {args.out}")
@@ -476,11 +475,11 @@ def _cmd_relight(args: argparse.Namespace) -> int:
 
 def _cmd_compare_maps(args: argparse.Namespace) -> int:
     from .rti import load_capture
-    from .rti_compare import baseline_fitter, compare, write_comparison
+    from .rti.comparison import baseline_fitter, compare, write_comparison
 
     names = [m.strip() for m in args.models.split(",") if m.strip()]
     free = _names(args.free)
-    from .rti_baselines import BASELINES
+    from .rti.baselines import BASELINES
 
     unknown = [n for n in names if n != "powder" and n not in BASELINES]
     if unknown or not names:

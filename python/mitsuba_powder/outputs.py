@@ -4,7 +4,7 @@ Every file the package writes goes through :func:`output_path` (a file inside an
 or :func:`output_file` (an output file the caller named). Both check the target against the
 *inputs* of the running command: within :func:`guarding_inputs` (the command line opens one
 around each command; :func:`mitsuba_powder.rendering.render.render_scene` and
-:func:`mitsuba_powder.rti_maps.relight_files` open their own), every file the package's loaders
+:func:`mitsuba_powder.rti.maps.relight_files` open their own), every file the package's loaders
 read is recorded by :func:`note_input`, and a write whose resolved path is one of them is
 refused with :class:`OutputError` before anything is written.
 

@@ -103,9 +103,22 @@ def engine_properties(properties: dict) -> dict:
     return out
 
 
-def _forward_grad(source, output):
-    """Tangent of ``output`` for a unit tangent on every entry of ``source`` (a variable or a
-    list of variables), the graph's edges kept for later passes."""
+def forward_grad(source, output) -> np.ndarray:
+    """Tangent of ``output`` for a unit tangent on every entry of ``source``, by forward-mode AD.
+
+    Used for Jacobian columns: one call per variable (or per group of variables whose
+    tangents do not mix, e.g. the three channels of a colour), several calls on one graph.
+
+    Args:
+        source: a Dr.Jit variable (or a list of them) with gradients enabled, on which
+            ``output`` depends.
+        output: the evaluated output of the graph.
+
+    Returns:
+        ``output``'s tangent as a float64 array shaped as ``np.array(output)`` gives it
+        (e.g. (3, N) for a colour of N lanes). The graph's edges are kept (``KeepEdges``) so
+        that later calls can traverse it again; the output's gradient is cleared.
+    """
     sources = source if isinstance(source, (list, tuple)) else [source]
     for s in sources:
         dr.set_grad(s, dr.ones(type(s), dr.shape(s)) if dr.is_tensor_v(s) else
@@ -224,5 +237,5 @@ class BatchBRF:
             brf = np.array(out, dtype=np.float64).reshape(self.batch, n)
             if derivatives:
                 for name, src in list(sources.items()) + [("albedo", tex)]:
-                    grads[name] = _forward_grad(src, out).reshape(self.batch, n)
+                    grads[name] = forward_grad(src, out).reshape(self.batch, n)
         return brf, grads

@@ -33,11 +33,11 @@ Bases (per channel; values in the capture's linear units):
 * ``lambertian``, photometric stereo (Woodham, "Photometric method for determining surface
   orientation from multiple images", Opt. Eng. 19, 1980): value = ``b . l``, 3 functions
   ``lx, ly, lz``, with ``b = albedo * normal`` per channel; the prediction is NOT clamped at
-  zero (lights behind the local tangent plane give negative values), as in the project's issue
-  #13 measurement. The normal map is ``b`` summed over channels, normalised; the albedo of a
+  zero (lights behind the local tangent plane give negative values): the plain linear model of
+  photometric stereo. The normal map is ``b`` summed over channels, normalised; the albedo of a
   channel is ``|b|``.
-* ``lambertian_clamped``: the same fit (unclamped least squares), predicting ``max(0, b . l)``.
-  The issue's Lambertian numbers on RealRTI item 7 (9.9 and 8.3) are this model's (docs/rti.md).
+* ``lambertian_clamped``: the same fit (unclamped least squares), predicting ``max(0, b . l)``,
+  the attached shadow of a Lambertian surface (docs/rti.md scores both on RealRTI captures).
 """
 
 from __future__ import annotations
@@ -46,24 +46,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .checks import check_directions
+
 __all__ = ["BASELINES", "Baseline", "basis", "fit_baseline"]
 
 #: baseline names and their number of basis functions per channel
 BASELINES = {"ptm": 6, "hsh": 9, "lambertian": 3, "lambertian_clamped": 3}
 #: pixels per chunk of the batched solves (bounds the float64 working memory)
 _CHUNK = 1 << 15
-
-
-def _directions(directions: np.ndarray) -> np.ndarray:
-    d = np.asarray(directions, dtype=np.float64)
-    if d.ndim != 2 or d.shape[1] != 3:
-        raise ValueError(f"directions of shape {d.shape}: expected (K, 3)")
-    norm = np.linalg.norm(d, axis=1)
-    if not np.all(np.isfinite(d)) or np.any(norm == 0):
-        bad = int(np.flatnonzero(~np.isfinite(norm) | (norm == 0))[0])
-        raise ValueError(f"directions[{bad}] = {d[bad].tolist()}: expected a finite non-zero "
-                         "vector")
-    return d / norm[:, None]
 
 
 def basis(name: str, directions: np.ndarray) -> np.ndarray:
@@ -75,7 +65,7 @@ def basis(name: str, directions: np.ndarray) -> np.ndarray:
     """
     if name not in BASELINES:
         raise ValueError(f"baseline {name!r} is not known; choose one of {list(BASELINES)}")
-    d = _directions(directions)
+    d = check_directions(directions)
     lx, ly, lz = d[:, 0], d[:, 1], d[:, 2]
     if name == "ptm":
         return np.stack([lx * lx, ly * ly, lx * ly, lx, ly, np.ones_like(lx)], axis=1)

@@ -1,4 +1,4 @@
-"""Powder maps on disk: a :func:`mitsuba_powder.rti_fit.fit_maps` result as EXR maps, ``fit.json``
+"""Powder maps on disk: a :func:`mitsuba_powder.rti.fit_maps` result as EXR maps, ``fit.json``
 and a Mitsuba scene, read back for relighting.
 
 A maps folder holds:
@@ -18,7 +18,7 @@ A maps folder holds:
   and lit by a directional emitter of irradiance ``$irradiance`` from ``($lx, $ly, $lz)``
   (towards the light, image frame). It renders with ``mitsuba scene.xml -D lx=... -D ly=...
   -D lz=...`` and with ``mitsuba-powder render``; with the ``direct`` integrator a pixel is the
-  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti_fit.relight` predicts.
+  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti.relight` predicts.
 
 Maps are written with row 0 at the top of the image (as the capture); the scene's bitmaps map
 them onto the rectangle with ``to_uv`` flipping v (Mitsuba's rectangle has v up, its bitmaps
@@ -33,82 +33,25 @@ from pathlib import Path
 
 import numpy as np
 
-from .outputs import guarding_inputs, note_input, note_inputs, output_path
-from .rti import Capture, read_lp, write_images
-from .rti_fit import GRAIN_MAPS, GRAIN_SETTINGS, MapsResult
-from .variants import use_variant
+from ..outputs import guarding_inputs, note_input, note_inputs, output_path
+from ..variants import use_variant
+from .capture import Capture, read_lp, write_images
+from .properties import GRAIN_MAPS, MAP_GRAIN_SETTINGS
+from .result import MapsResult
 
 #: File written for the scene's normal map (tangent space, encoded (n + 1) / 2)
 NORMAL_TANGENT = "normal_tangent.exr"
 
-
-def _write_exr(path: Path, data: np.ndarray) -> None:
-    import mitsuba as mi
-
-    with use_variant("scalar_rgb"):
-        arr = np.ascontiguousarray(np.asarray(data, dtype=np.float32))
-        if arr.ndim == 2:
-            arr = arr[..., None]
-        fmt = mi.Bitmap.PixelFormat.Y if arr.shape[2] == 1 else mi.Bitmap.PixelFormat.RGB
-        mi.Bitmap(arr, fmt).write(str(path))
-
-
-def _read_exr(path: Path) -> np.ndarray:
-    import mitsuba as mi
-
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such map (the folder must come from fit-maps)")
-    note_input(path)
-    with use_variant("scalar_rgb"):
-        arr = np.array(mi.Bitmap(str(path)), dtype=np.float32)
-    return arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
-
-
-def _stats(values: np.ndarray) -> dict:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return {"median": None}
-    p = np.percentile(v, [5, 50, 95])
-    return {"p5": float(p[0]), "median": float(p[1]), "p95": float(p[2])}
-
-
-def scene_xml(result: MapsResult, settings: dict) -> str:
-    """The Mitsuba scene of a maps folder (module docstring)."""
-    h, w = result.mask.shape
-    aspect = w / h
-
-    def bitmap(name: str, filename: str) -> str:
-        return (f'        <texture type="bitmap" name="{name}">\n'
-                f'            <string name="filename" value="{filename}"/>\n'
-                f'            <boolean name="raw" value="true"/>\n'
-                f'            <string name="filter_type" value="nearest"/>\n'
-                f'            <transform name="to_uv">\n'
-                f'                <scale y="-1"/>\n'
-                f'                <translate y="1"/>\n'
-                f'            </transform>\n'
-                f'        </texture>\n')
-
-    grain_maps = [name for name in result.maps if name in GRAIN_MAPS]
-    if not grain_maps:  # the albedo map replaces the grains: the plugin takes one or the other
-        settings = {k: v for k, v in settings.items() if k not in GRAIN_SETTINGS}
-    props = []
-    for key, value in settings.items():
-        if isinstance(value, bool) or value is None:
-            continue
-        if isinstance(value, str):
-            props.append(f'            <string name="{key}" value="{value}"/>')
-        elif isinstance(value, (int, float)) and math.isfinite(value):
-            props.append(f'            <float name="{key}" value="{value!r}"/>')
-    maps = "".join("    " + line + "\n" for name in sorted(result.maps)
-                   for line in bitmap(name, f"{name}.exr").splitlines())
-    albedo = "" if grain_maps else "".join(
-        "    " + line + "\n" for line in bitmap("albedo", "albedo.exr").splitlines())
-    return f"""<!--
+#: The scene of a maps folder (module docstring); ``str.format`` fields: the image size
+#: ``w``, ``h`` and ``aspect`` (w / h); the textures ``normalmap``, ``albedo`` and ``maps``
+#: and the held settings ``props`` as XML
+_SCENE = """<!--
   Powder maps fitted by mitsuba-powder fit-maps ({w} x {h} px). Render under a light from
   (lx, ly, lz) (towards the light; x right, y up, z towards the camera), e.g.
     mitsuba scene.xml -D lx=0.5 -D ly=0 -D lz=0.866 -o relit.exr
     mitsuba-powder render scene.xml -o relit.exr -D lx=0.5 -D ly=0 -D lz=0.866
-  A pixel is E f (n . l) (direct illumination; E = $irradiance), as rti_fit.relight predicts.
+  A pixel is E f (n . l) (direct illumination; E = $irradiance), as
+  mitsuba_powder.rti.relight predicts.
 -->
 <scene version="3.0.0">
     <default name="spp" value="4"/>
@@ -154,8 +97,8 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
         <!-- no shadow-terminator term: the fitted model is f (n . l) exactly -->
         <bsdf type="normalmap">
             <boolean name="use_shadowing_function" value="false"/>
-{bitmap("normalmap", NORMAL_TANGENT)}            <bsdf type="powder">
-{albedo}{maps}{chr(10).join(props)}
+{normalmap}            <bsdf type="powder">
+{albedo}{maps}{props}
             </bsdf>
         </bsdf>
     </shape>
@@ -163,12 +106,87 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
 """
 
 
+def _write_exr(path: Path, data: np.ndarray) -> None:
+    import mitsuba as mi
+
+    with use_variant("scalar_rgb"):
+        arr = np.ascontiguousarray(np.asarray(data, dtype=np.float32))
+        if arr.ndim == 2:
+            arr = arr[..., None]
+        fmt = mi.Bitmap.PixelFormat.Y if arr.shape[2] == 1 else mi.Bitmap.PixelFormat.RGB
+        mi.Bitmap(arr, fmt).write(str(path))
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    import mitsuba as mi
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such map (the folder must come from fit-maps)")
+    note_input(path)
+    with use_variant("scalar_rgb"):
+        arr = np.array(mi.Bitmap(str(path)), dtype=np.float32)
+    return arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
+
+
+def _stats(values: np.ndarray) -> dict:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return {"median": None}
+    p = np.percentile(v, [5, 50, 95])
+    return {"p5": float(p[0]), "median": float(p[1]), "p95": float(p[2])}
+
+
+def _bitmap_xml(name: str, filename: str) -> str:
+    """A raw, nearest-filtered bitmap texture of a map, its rows flipped onto the rectangle's
+    v (module docstring)."""
+    return (f'        <texture type="bitmap" name="{name}">\n'
+            f'            <string name="filename" value="{filename}"/>\n'
+            f'            <boolean name="raw" value="true"/>\n'
+            f'            <string name="filter_type" value="nearest"/>\n'
+            f'            <transform name="to_uv">\n'
+            f'                <scale y="-1"/>\n'
+            f'                <translate y="1"/>\n'
+            f'            </transform>\n'
+            f'        </texture>\n')
+
+
+def _indented(xml: str) -> str:
+    """``xml`` indented by one more level (inside the powder BSDF)."""
+    return "".join("    " + line + "\n" for line in xml.splitlines())
+
+
+def _property_xml(settings: dict) -> str:
+    """The powder's held settings as XML properties (strings and finite numbers)."""
+    props = []
+    for key, value in settings.items():
+        if isinstance(value, bool) or value is None:
+            continue
+        if isinstance(value, str):
+            props.append(f'            <string name="{key}" value="{value}"/>')
+        elif isinstance(value, (int, float)) and math.isfinite(value):
+            props.append(f'            <float name="{key}" value="{value!r}"/>')
+    return "\n".join(props)
+
+
+def scene_xml(result: MapsResult, settings: dict) -> str:
+    """The Mitsuba scene of a maps folder (module docstring)."""
+    h, w = result.mask.shape
+    grain_maps = [name for name in result.maps if name in GRAIN_MAPS]
+    if not grain_maps:  # the albedo map replaces the grains: the plugin takes one or the other
+        settings = {k: v for k, v in settings.items() if k not in MAP_GRAIN_SETTINGS}
+    maps = "".join(_indented(_bitmap_xml(name, f"{name}.exr")) for name in sorted(result.maps))
+    albedo = "" if grain_maps else _indented(_bitmap_xml("albedo", "albedo.exr"))
+    return _SCENE.format(w=w, h=h, aspect=w / h, normalmap=_bitmap_xml("normalmap",
+                                                                        NORMAL_TANGENT),
+                         albedo=albedo, maps=maps, props=_property_xml(settings))
+
+
 def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None = None,
                light_names: list[str] | None = None) -> Path:
     """Write a fit to ``out_dir`` (module docstring); returns the path of ``fit.json``.
 
     Args:
-        result: a :func:`mitsuba_powder.rti_fit.fit_maps` result.
+        result: a :func:`mitsuba_powder.rti.fit_maps` result.
         out_dir: output folder (created).
         capture: the fitted capture (its encoding, bit depth and file format are recorded, so
             that :func:`relight_files` writes matching images).

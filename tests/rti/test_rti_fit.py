@@ -1,4 +1,4 @@
-"""Per-pixel powder maps from RTI captures (mitsuba_powder.rti_fit), on SYNTHETIC captures.
+"""Per-pixel powder maps from RTI captures (mitsuba_powder.rti), on SYNTHETIC captures.
 
 References: the forward model against separately loaded plugin instances evaluated in
 ``scalar_rgb`` with an independent (NumPy, Gram-Schmidt) tangent frame and docs/model.md's argument
@@ -13,7 +13,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mitsuba_powder import rti_fit as rf
+from mitsuba_powder import rti as rf
+from mitsuba_powder.fitting.optimise import ParamSpec
+from mitsuba_powder.rti.forward import PixelEvaluator, slopes_of_normals
+from mitsuba_powder.rti.problem import PixelProblem
 from mitsuba_powder.variants import use_variant
 
 NOISE = 0.01
@@ -100,16 +103,16 @@ def test_jacobian_matches_finite_differences():
     d = rf.dome_directions(12)
     free = ["albedo", "amplitude_volume", "g", "extinction", "amplitude_surface",
             "correlation_length"]
-    ev = rf._Evaluator(free[1:], {}, "llvm_ad_rgb")
-    layout = [("slope_x", rf.ParamSpec(-5, 5, False, 0)),
-              ("slope_y", rf.ParamSpec(-5, 5, False, 0))]
+    ev = PixelEvaluator(free[1:], {}, "llvm_ad_rgb")
+    layout = [("slope_x", ParamSpec(-5, 5, False, 0)),
+              ("slope_y", ParamSpec(-5, 5, False, 0))]
     layout += [(f"albedo{c}", rf.SPECS["albedo"]) for c in range(3)]
     layout += [(n, rf.SPECS[n]) for n in free[1:]]
     p = 16
     obs = rf.render_capture(cap_maps, d).reshape(12, p, 3).transpose(1, 0, 2).astype(float)
-    prob = rf._PixelProblem(ev, obs, np.ones((p, 12)), d, np.full(12, 1.5), layout, {})
+    prob = PixelProblem(ev, obs, np.ones((p, 12)), d, np.full(12, 1.5), layout, {})
     y = np.zeros((p, len(layout) + 1))
-    y[:, :2] = rf._slopes(cap_maps["normal"].reshape(p, 3)) + 0.05
+    y[:, :2] = slopes_of_normals(cap_maps["normal"].reshape(p, 3)) + 0.05
     y[:, 2:5] = cap_maps["albedo"].reshape(p, 3) * 0.95
     for j, name in enumerate(free[1:]):
         y[:, 5 + j] = rf.SPECS[name].to_y(cap_maps[name].reshape(p)) + 0.02
@@ -160,7 +163,7 @@ def test_fit_recovers_synthetic_maps_and_predicts_held_out_lights(capture):
     fixed = {n: truth[n] for n in NON_IDENTIFIABLE}
     result = rf.fit_maps(cap["images"][kept], cap["directions"][kept], fixed=fixed,
                          gains="fixed", initial_gains=cap["gains"][kept])
-    assert result.free == rf.DEFAULT_FREE and result.n_parameters == 7
+    assert result.free == rf.MAP_DEFAULT_FREE and result.n_parameters == 7
     err = _normal_error_deg(result.normals, truth["normal"])
     assert np.median(err) < 1.0 and np.percentile(err, 95) < 2.0
     medians = _region_medians(result, cap)
@@ -316,7 +319,7 @@ def test_per_pixel_grain_radius_is_recovered():
     """SYNTHETIC capture of hematite whose grain radius differs per region (the albedo per
     channel follows from it, GrainAlbedo), 1 % noise, 8 held-out lights: the radius is fitted
     per pixel (1 number instead of 3 albedos) through the chain rule of rho(r), and recovered
-    per region; calibrated gains; A_v, g and extinction held (not identifiable, module doc).
+    per region; calibrated gains; A_v, g and extinction held (not identifiable, rti.fit module doc).
     Measured: radius medians within 1 %, normal medians 1.0-2.3 degrees, held-out RMS 1.5 x
     the noise."""
     maps, region = rf.synthetic_maps(24, 24, relief=0.25, seed=0)
@@ -426,7 +429,7 @@ def test_per_pixel_grain_errors(free, fixed, fragment):
 
 def test_grain_albedo_table_against_direct_theory():
     """GrainAlbedo's interpolation against the plugin's double-precision albedo between nodes."""
-    from mitsuba_powder.grain_optics import GrainOptics
+    from mitsuba_powder.plugin.grains import GrainOptics
 
     for name, settings in (("radius", {}), ("radius", {"grains": "slab"}),
                            ("agglomerate_radius", {"grains": "agglomerate",

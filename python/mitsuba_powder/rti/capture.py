@@ -49,9 +49,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import colour
+import mitsuba as mi
 import numpy as np
 
-from .outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
+from ..outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
+from ..variants import use_variant
 
 __all__ = ["Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
            "lp_image_paths", "read_image", "read_lp", "read_mask", "write_images", "write_lp"]
@@ -249,10 +251,6 @@ def write_lp(path: str | Path, names: Sequence[str], directions: np.ndarray) -> 
 
 def _bitmap(path: Path):
     """(raw array (H, W, C), file format, bit depth) of an image file, through mi.Bitmap."""
-    import mitsuba as mi
-
-    from .variants import use_variant
-
     with use_variant(mi.variant() or "scalar_rgb"):
         bmp = mi.Bitmap(str(path))
         fmt = bmp.component_format()
@@ -417,29 +415,9 @@ def write_images(capture_like: Capture, images: np.ndarray,
         ValueError: bad shapes, suffixes or quality; :class:`mitsuba_powder.outputs.OutputError`
             (a ValueError) for a name or target that is refused.
     """
-    import mitsuba as mi
-
-    from .variants import use_variant
-
-    imgs = np.asarray(images)
-    if imgs.ndim == 3:
-        imgs = imgs[..., None]
-    if imgs.ndim != 4 or imgs.shape[3] not in (1, 3):
-        raise ValueError(f"images of shape {np.shape(images)}: expected (K, H, W, C) with "
-                         "C = 1 or 3")
-    if not 1 <= int(jpeg_quality) <= 100:
-        raise ValueError(f"jpeg_quality = {jpeg_quality}: expected 1-100")
+    imgs = _image_stack(images, jpeg_quality)
     with guarding_inputs():
-        lp_copy = None
-        if isinstance(lp_path_or_names, (str, Path)):
-            lp_copy = Path(lp_path_or_names)
-            read_names, directions, linenos = _read_lp_lines(lp_copy, MIN_LZ_DEFAULT)
-            # the photographs the .lp names (those that exist: a relight into the folder of
-            # an earlier relight's .lp may replace its own images)
-            note_inputs(p for p in lp_image_paths(lp_copy, read_names) if p.exists())
-            names = output_names(read_names, [f"{lp_copy}, line {n}" for n in linenos])
-        else:
-            names = list(lp_path_or_names)
+        names, lp_copy, read_names, directions = _output_names_of(lp_path_or_names)
         if len(names) != imgs.shape[0]:
             raise ValueError(f"{len(names)} file names for {imgs.shape[0]} images")
         for name in names:
@@ -452,33 +430,65 @@ def write_images(capture_like: Capture, images: np.ndarray,
         if lp_copy is not None:
             same = (out / lp_copy.name).resolve() == lp_copy.resolve()
             # the .lp itself is the output's .lp when the names are kept: nothing to write
-            if not (same and list(names) == list(read_names)):
+            if not (same and names == read_names):
                 lp_out = output_path(out, lp_copy.name, mkdir=False)
-        pixel = mi.Bitmap.PixelFormat.Y if imgs.shape[3] == 1 else mi.Bitmap.PixelFormat.RGB
-        written = []
         with use_variant(mi.variant() or "scalar_rgb"):
             for path, img in zip(paths, imgs):
-                path.parent.mkdir(parents=True, exist_ok=True)
-                fmt = _FORMATS[path.suffix.lower()]
-                values = encode(img, capture_like.encoding)
-                quality = -1
-                if fmt == "exr":
-                    dtype = np.float16 if (capture_like.file_format == "exr"
-                                           and capture_like.bit_depth == 16) else np.float32
-                    data = values.astype(dtype)
-                else:
-                    depth = 8 if fmt == "jpeg" else (16 if capture_like.bit_depth >= 16 else 8)
-                    full = 255.0 if depth == 8 else 65535.0
-                    dtype = np.uint8 if depth == 8 else np.uint16
-                    data = np.rint(np.clip(values, 0.0, 1.0) * full).astype(dtype)
-                    quality = int(jpeg_quality) if fmt == "jpeg" else -1
-                bmp = mi.Bitmap(np.ascontiguousarray(data), pixel)
-                bmp.set_srgb_gamma(capture_like.encoding == "srgb" and fmt != "exr")
-                bmp.write(str(path), quality=quality)
-                written.append(path)
+                _write_image(path, img, capture_like, jpeg_quality)
         if lp_out is not None:
-            if list(names) == list(read_names):
+            if names == read_names:
                 shutil.copyfile(lp_copy, lp_out)
             else:
                 write_lp(lp_out, names, directions)
-    return written
+    return paths
+
+
+def _image_stack(images: np.ndarray, jpeg_quality: int) -> np.ndarray:
+    """Images to write as (K, H, W, C), C = 1 or 3, with the JPEG quality checked."""
+    imgs = np.asarray(images)
+    if imgs.ndim == 3:
+        imgs = imgs[..., None]
+    if imgs.ndim != 4 or imgs.shape[3] not in (1, 3):
+        raise ValueError(f"images of shape {np.shape(images)}: expected (K, H, W, C) with "
+                         "C = 1 or 3")
+    if not 1 <= int(jpeg_quality) <= 100:
+        raise ValueError(f"jpeg_quality = {jpeg_quality}: expected 1-100")
+    return imgs
+
+
+def _output_names_of(lp_path_or_names: str | Path | Sequence[str]
+                     ) -> tuple[list[str], Path | None, list[str], np.ndarray | None]:
+    """(output names, the ``.lp`` file or None, the names it lists, its directions) of
+    :func:`write_images`' ``lp_path_or_names``; the ``.lp`` file's photographs are noted as
+    inputs (those that exist: a relight into the folder of an earlier relight's ``.lp`` may
+    replace its own images)."""
+    if not isinstance(lp_path_or_names, (str, Path)):
+        return list(lp_path_or_names), None, [], None
+    lp = Path(lp_path_or_names)
+    read_names, directions, linenos = _read_lp_lines(lp, MIN_LZ_DEFAULT)
+    note_inputs(p for p in lp_image_paths(lp, read_names) if p.exists())
+    names = list(output_names(read_names, [f"{lp}, line {n}" for n in linenos]))
+    return names, lp, list(read_names), directions
+
+
+def _write_image(path: Path, img: np.ndarray, capture_like: Capture, jpeg_quality: int) -> None:
+    """Write one image (H, W, C) of linear values with the capture's encoding and bit depth
+    (:func:`write_images`); in a Mitsuba variant."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fmt = _FORMATS[path.suffix.lower()]
+    values = encode(img, capture_like.encoding)
+    quality = -1
+    if fmt == "exr":
+        dtype = np.float16 if (capture_like.file_format == "exr"
+                               and capture_like.bit_depth == 16) else np.float32
+        data = values.astype(dtype)
+    else:
+        depth = 8 if fmt == "jpeg" else (16 if capture_like.bit_depth >= 16 else 8)
+        full = 255.0 if depth == 8 else 65535.0
+        dtype = np.uint8 if depth == 8 else np.uint16
+        data = np.rint(np.clip(values, 0.0, 1.0) * full).astype(dtype)
+        quality = int(jpeg_quality) if fmt == "jpeg" else -1
+    pixel = mi.Bitmap.PixelFormat.Y if img.shape[2] == 1 else mi.Bitmap.PixelFormat.RGB
+    bmp = mi.Bitmap(np.ascontiguousarray(data), pixel)
+    bmp.set_srgb_gamma(capture_like.encoding == "srgb" and fmt != "exr")
+    bmp.write(str(path), quality=quality)

@@ -1,5 +1,5 @@
-"""RTI captures (mitsuba_powder.rti), per-pixel baselines (rti_baselines) and the held-out-light
-comparison (rti_compare), on SYNTHETIC captures generated here."""
+"""RTI captures (mitsuba_powder.rti.capture), per-pixel baselines (rti.baselines) and the
+held-out-light comparison (rti.comparison), on SYNTHETIC captures generated here."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pytest
 
 from mitsuba_powder.cli import main
 from mitsuba_powder.rti import Capture, load_capture, read_lp, write_images, write_lp
-from mitsuba_powder.rti_baselines import basis, fit_baseline
-from mitsuba_powder.rti_compare import baseline_fitter, compare, held_out, write_comparison
+from mitsuba_powder.rti.baselines import basis, fit_baseline
+from mitsuba_powder.rti.comparison import baseline_fitter, compare, held_out, write_comparison
 from mitsuba_powder.variants import use_variant
 
 K, H, W = 30, 24, 32

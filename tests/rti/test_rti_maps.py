@@ -15,10 +15,17 @@ import numpy as np
 import pytest
 
 from mitsuba_powder.cli import main
-from mitsuba_powder.render import render_scene
-from mitsuba_powder.rti import Capture, load_capture, write_images, write_lp
-from mitsuba_powder.rti_fit import MapsResult, synthetic_capture, synthetic_maps
-from mitsuba_powder.rti_maps import read_maps, write_maps
+from mitsuba_powder.rendering.render import render_scene
+from mitsuba_powder.rti import (
+    Capture,
+    MapsResult,
+    load_capture,
+    synthetic_capture,
+    synthetic_maps,
+    write_images,
+    write_lp,
+)
+from mitsuba_powder.rti.maps import read_maps, write_maps
 from mitsuba_powder.variants import use_variant
 
 

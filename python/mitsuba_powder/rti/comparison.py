@@ -1,11 +1,12 @@
-"""Held-out-light comparison of per-pixel models of an RTI capture (issue #13's protocols).
+"""Held-out-light comparison of per-pixel models of an RTI capture: interpolation between the
+lights and extrapolation to grazing light.
 
 Protocols (K lights, indices in ``.lp`` order from 0):
 
 * ``interpolation``: every fifth light is held out, the lights ``k`` with ``k % 5 == phase``,
   ``phase = 4`` by default (the 5th, 10th, 15th, ... lines of the ``.lp`` file: indices 4, 9,
-  14, ...); the others are fitted. The issue's numbers on RealRTI item 7 were measured with
-  ``phase = 2`` (indices 2, 7, 12, ...; docs/rti.md).
+  14, ...); the others are fitted. Scores depend on the phase (docs/rti.md gives RealRTI
+  scores for ``phase = 2``, indices 2, 7, 12, ..., and 4).
 * ``grazing`` (extrapolation to grazing light): the ``ceil(K / 6)`` lights of lowest
   elevation (smallest normalised ``lz``; ties broken by ``.lp`` order) are held out; the
   others are fitted.
@@ -14,8 +15,8 @@ Score: the held-out RMSE in 8-bit levels, ``255 * sqrt(mean((encode(prediction) 
 encode(image))^2))`` over the held-out lights, the pixels of the mask (all without one) and
 the channels, where ``encode`` is the capture's encoding (:func:`mitsuba_powder.rti.encode`):
 the error on the file's value scale (0-255 for 8-bit files; 16-bit files and EXR on the same
-0-255 scale of full scale 1.0). With ``encoding="linear"`` (pixel / 255 taken as linear, as the
-issue's numbers) this is also the linear error; with ``srgb`` it is the error of the
+0-255 scale of full scale 1.0). With ``encoding="linear"`` (pixel / 255 taken as linear, as
+docs/rti.md's RealRTI scores) this is also the linear error; with ``srgb`` it is the error of the
 sRGB-encoded values, and ``rmse_linear_8bit`` (255 x the linear RMSE) is reported beside it.
 Predictions are scored as the model gives them (not clamped, except by the model itself:
 ``lambertian_clamped``).
@@ -39,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
-from .outputs import output_path
-from .rti import Capture, encode
-from .rti_baselines import BASELINES, fit_baseline
+from ..outputs import output_path
+from .baselines import BASELINES, fit_baseline
+from .capture import Capture, encode
 
 __all__ = ["PROTOCOLS", "Comparison", "Row", "baseline_fitter", "compare", "held_out",
            "write_comparison"]

@@ -1,0 +1,76 @@
+"""Reflectance Transformation Imaging (RTI): captures, per-pixel powder maps, baselines.
+
+Modules, one job each:
+
+* :mod:`~mitsuba_powder.rti.capture`: ``.lp`` files and their images, read and written;
+* :mod:`~mitsuba_powder.rti.properties`: what may vary per pixel, bounds and valid ranges,
+  the albedo of per-pixel grain sizes;
+* :mod:`~mitsuba_powder.rti.forward`: the per-pixel forward model (:func:`render_capture`);
+* :mod:`~mitsuba_powder.rti.starts`: Lambertian photometric stereo and the grain-size search;
+* :mod:`~mitsuba_powder.rti.problem`: the least-squares problems of pixels and light gains;
+* :mod:`~mitsuba_powder.rti.fit`: :func:`fit_maps` and what a dome of lights determines;
+* :mod:`~mitsuba_powder.rti.result`: :class:`MapsResult` and :func:`relight`;
+* :mod:`~mitsuba_powder.rti.synthetic`: SYNTHETIC captures of known maps;
+* :mod:`~mitsuba_powder.rti.maps`: fitted maps on disk (EXR, ``fit.json``, a scene);
+* :mod:`~mitsuba_powder.rti.baselines`: PTM, HSH and Lambertian per-pixel baselines;
+* :mod:`~mitsuba_powder.rti.comparison`: the held-out-light comparison of models.
+
+The names of the capture, the forward model, the fit, relighting and synthetic captures are
+importable from here (``from mitsuba_powder.rti import Capture, read_lp, fit_maps``).
+"""
+
+from __future__ import annotations
+
+from .capture import (
+    ENCODINGS,
+    MIN_LZ_DEFAULT,
+    Capture,
+    decode,
+    encode,
+    load_capture,
+    lp_image_paths,
+    read_image,
+    read_lp,
+    read_mask,
+    write_images,
+    write_lp,
+)
+from .fit import GAIN_MODES, fit_maps, max_correlation_length
+from .forward import MAX_LANES, VARIANT, render_capture
+from .properties import (
+    FREE_PROPERTIES,
+    GRAIN_MAPS,
+    MAP_DEFAULT_FREE,
+    MAP_GRAIN_SETTINGS,
+    MAP_PROPERTIES,
+    SLOPE_LIMIT,
+    SPECS,
+    GrainAlbedo,
+    grain_map_name,
+)
+from .result import MapsResult, relight
+from .starts import START_EXTINCTIONS, START_SIZES, lambertian_start
+from .synthetic import (
+    SYNTHETIC_GRAIN_REGIONS,
+    SYNTHETIC_REGION_SETS,
+    SYNTHETIC_REGIONS,
+    dome_directions,
+    synthetic_capture,
+    synthetic_maps,
+)
+
+__all__ = [
+    # capture
+    "Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
+    "lp_image_paths", "read_image", "read_lp", "read_mask", "write_images", "write_lp",
+    # per-pixel properties
+    "FREE_PROPERTIES", "GRAIN_MAPS", "GrainAlbedo", "MAP_DEFAULT_FREE", "MAP_GRAIN_SETTINGS",
+    "MAP_PROPERTIES", "SLOPE_LIMIT", "SPECS", "grain_map_name",
+    # forward model, starts, fit, result
+    "MAX_LANES", "VARIANT", "render_capture", "START_EXTINCTIONS", "START_SIZES",
+    "lambertian_start", "GAIN_MODES", "fit_maps", "max_correlation_length", "MapsResult",
+    "relight",
+    # synthetic captures
+    "SYNTHETIC_GRAIN_REGIONS", "SYNTHETIC_REGIONS", "SYNTHETIC_REGION_SETS", "dome_directions",
+    "synthetic_capture", "synthetic_maps",
+]

@@ -1,0 +1,515 @@
+"""Per-pixel powder maps fitted to an RTI capture (:func:`fit_maps`).
+
+The forward model and its frame are :mod:`mitsuba_powder.rti.forward`'s. The fit runs over
+every pixel at once, with no Python loop over pixels.
+
+**Fit.** Variables per pixel: the normal as the slopes ``(a, b) = (n_x/n_z, n_y/n_z)``
+(``n = (a, b, 1)/|(a, b, 1)|``: smooth everywhere, no singularity at ``n = z``), the albedo per
+channel, and the free powder properties (log10 for positive scale properties, as in
+:data:`mitsuba_powder.fitting.fit.FITTABLE`). The loss of a pixel is
+``sum_{k, c} w_{k} (E_k f_c max(n . l_k, 0) - I_{k, c})^2`` with ``w_k`` in {0, 1}: observations
+flagged as saturated (any channel >= ``saturation``) or shadowed (observed far below the
+model's prediction) get ``w = 0``. It is minimised by
+:func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt` with B = pixels (all pixels of a
+chunk in each Dr.Jit launch; Jacobian columns by forward-mode AD, one pass per variable and one
+pass for the three albedo channels together). Starts (:mod:`mitsuba_powder.rti.starts`):
+normal and albedo from Lambertian photometric stereo (weighted least squares per pixel,
+vectorised), the Lambertian albedo mapped to the powder's single-scattering albedo through a
+table of the model; a free grain size from a search over 40 sizes (x 5 extinctions when
+``extinction`` is free, with ``amplitude_volume`` in closed form when it is free); other
+properties at their defaults. Per-light gains ``E_k`` shared by all pixels alternate with the
+per-pixel fit: closed-form least squares given the per-pixel models
+(:func:`mitsuba_powder.rti.problem.gain_system`), normalised to mean 1 (the overall scale goes
+into the albedo and ``amplitude_volume``).
+
+**What a dome of lights determines.** Cramer-Rao bounds (1-sigma, from the Jacobian at the
+truth) per pixel with 1 % noise, 40 lights at elevations 10-80 degrees, a camera at the zenith,
+the four regions of :data:`mitsuba_powder.rti.synthetic.SYNTHETIC_REGIONS`, flat and tilted
+normals, all ten parameters free -> the default seven:
+
+* normal: 0.2-1.0 degrees -> identifiable;
+* albedo per channel: 8-160 % with ``amplitude_volume`` and ``g`` free (condition number of
+  J^T J 1e5-6e7), 0.03-7 % once they are held -> identifiable given A_v and g;
+* ``amplitude_volume``: 50-360 % (an overall scale of the volume terms, traded against the
+  albedo: L1 ~ rho and L2 ~ rho^2 differ too little in angular shape) -> not identifiable;
+* ``g``: 20-500 % (the camera sees scattering angles 100-170 degrees only) -> not identifiable;
+* ``extinction``: 30-450 % (it sets only the coherent cone, kappa / k0 wide, around the
+  retro-reflection direction; the nearest light is 10 degrees away) and the finite-thickness
+  factor -> not identifiable;
+* ``amplitude_surface``, ``correlation_length``: 10-40 % (the lobe is seen by a few lights)
+  -> weakly identifiable, but the lobe must be modelled: without it normals and albedo are
+  biased where it is strong.
+
+Fits of the synthetic capture agree: with ``amplitude_volume``, ``g`` and ``extinction`` free
+the residual is at the noise level but region medians are off by 10-100 % (albedo by up to
+23 %); with them held at the truth, albedo medians are within 1 % and normals within 0.5
+degrees (median). Hence :data:`~mitsuba_powder.rti.properties.MAP_DEFAULT_FREE`: normal (2),
+albedo (3), ``amplitude_surface``, ``correlation_length``: 7 numbers per pixel; the others are
+held (at the plugin's defaults or as given in ``fixed``), and the albedo is then relative to
+them.
+
+Two changes make ``amplitude_volume`` and ``extinction`` identifiable: a grain size free
+instead of the albedo (``free=["radius", ...]``: the grains set all three channels, so A_v
+no longer trades against the albedo's scale) and lights near the camera, which sample the
+coherent cone (:func:`mitsuba_powder.rti.synthetic_capture` ``near_camera``). Bounds per pixel
+with normal, radius, A_v and extinction free (``docs/scripts/rti_identifiability.py``, images
+exposed to 0.9): radius 0.2-10 %, A_v 0.4-16 %, extinction 3.7-14 % with 8 of 40 lights at
+82-88 degrees, against 6.9-44 % for the extinction on the 10-80 degree dome, where a fit can
+also land on a second solution at the noise level; with the near-camera lights, region medians
+of the synthetic capture are within 4 % (``tests/rti/test_rti_fit.py``, docs/rti.md).
+
+**Scale.** The overall scale of the gains is not fitted: it is a calibration (the mean of
+``initial_gains``, default 1, e.g. from a white reference); only the gains relative to it are.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..fitting.optimise import ParamSpec, batch_levenberg_marquardt
+from .checks import check_count, check_directions, check_gains, check_images, check_range
+from .forward import MAX_LANES, VARIANT, PixelEvaluator, normals_of_slopes, pixel_chunks
+from .problem import PixelProblem, gain_step, gain_system
+from .properties import (
+    FREE_PROPERTIES,
+    GRAIN_MAPS,
+    MAP_DEFAULT_FREE,
+    MAP_PROPERTIES,
+    SLOPE_LIMIT,
+    SPECS,
+    GrainAlbedo,
+    grain_map_name,
+    property_map,
+)
+from .result import MapsResult
+from .starts import PixelStarts
+
+__all__ = ["GAIN_MODES", "fit_maps", "max_correlation_length"]
+
+#: Gain modes of :func:`fit_maps`
+GAIN_MODES = ("fit", "fixed")
+
+
+def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) -> float:
+    """Largest Harvey-Shack correlation length (um) whose surface lobe a dome resolves.
+
+    The lobe's 1/e half width in the projected plane is ``lambda / (pi l_c)``; a lobe narrower
+    than half the typical spacing ``s`` of the lights (median angle from a light to its
+    nearest neighbour, radians) falls between them: its height and width are then traded
+    against each other freely and it relights wildly (a needle fitted to one light's noise).
+    So ``l_c <= lambda / (pi s / 2)``, at the shortest RGB wavelength (nm; the narrowest lobe).
+    40 lights at 10-80 degrees: s = 19.5 degrees, 0.87 um.
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    if len(d) < 2:
+        return SPECS["correlation_length"].upper
+    cos = np.clip(d @ d.T, -1.0, 1.0)
+    np.fill_diagonal(cos, -1.0)
+    spacing = float(np.median(np.arccos(np.max(cos, axis=1))))
+    return float(wavelength * 1e-3 / (math.pi * max(spacing, 1e-6) / 2))
+
+
+# ---------------------------------------------------------------------------
+#  Set-up: the checked inputs
+# ---------------------------------------------------------------------------
+
+@dataclass
+class _FitData:
+    """The checked inputs of a fit, restricted to the masked pixels (P of them)."""
+
+    obs: np.ndarray                    # (P, K, 3) float64 observations
+    d: np.ndarray                      # (K, 3) unit vectors towards the lights
+    mask: np.ndarray                   # (H, W) bool, the fitted pixels
+    free: list[str]                    # the free properties (besides the normal)
+    others: list[str]                  # the free ones that are neither albedo nor grain size
+    grain_name: str                    # the per-pixel grain size of the settings
+    grain: GrainAlbedo | None          # the albedo of a free or fixed grain size
+    fixed: dict                        # the held properties as given
+    fixed_maps: dict[str, np.ndarray]  # held per-pixel float property -> (P,)
+    fixed_albedo: np.ndarray | None    # (P, 3) when neither the albedo nor a grain size is free
+    settings: dict                     # plugin properties held for every pixel
+    gains: np.ndarray                  # (K,) initial gains
+    scale: float                       # their mean: a calibration, not fitted
+    gain_mode: str
+    max_iterations: int
+    rounds: int
+    saturation: float
+    shadow_ratio: float
+    shadow_floor: float
+    max_lanes: int
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """(P, K): observations with a channel at or above the saturation level."""
+        return np.any(self.obs >= self.saturation, axis=2)
+
+    def flags(self, predicted: np.ndarray) -> np.ndarray:
+        """Weights (P, K): 0 where saturated or where the observed channel mean is below the
+        ``predicted`` one (P, K, 3) by more than ``max(shadow_ratio x predicted,
+        shadow_floor)``."""
+        obs = self.obs.mean(axis=2)
+        pred = predicted.mean(axis=2)
+        shadow = (pred - obs) > np.maximum(self.shadow_ratio * pred, self.shadow_floor)
+        return (~self.saturated & ~shadow).astype(np.float64)
+
+
+def _check_free(free: Sequence[str] | None) -> list[str]:
+    """The free properties (default :data:`MAP_DEFAULT_FREE`), checked."""
+    free = list(MAP_DEFAULT_FREE if free is None else free)
+    for name in free:
+        if name not in FREE_PROPERTIES:
+            raise ValueError(f"free property {name!r} is not fittable per pixel; choose among "
+                             f"{list(FREE_PROPERTIES)}")
+    if len(set(free)) != len(free):
+        raise ValueError(f"free = {free} names a property twice")
+    n_par = 2 + sum(3 if n == "albedo" else 1 for n in free)
+    if n_par > 10:
+        raise ValueError(f"free = {free} gives {n_par} numbers per pixel; valid range is at "
+                         "most 10 (normal 2 + albedo 3 + 5)")
+    return free
+
+
+def _check_options(gains: str, max_iterations: int, rounds: int, saturation: float,
+                   shadow_ratio: float, shadow_floor: float, max_lanes: int) -> dict:
+    """The fit's scalar options, checked, by :class:`_FitData` field name."""
+    if gains not in GAIN_MODES:
+        raise ValueError(f"gains = {gains!r} is not a gain mode; choose one of {GAIN_MODES}")
+    return {"gain_mode": gains,
+            "max_iterations": check_count("max_iterations", max_iterations, 1),
+            "rounds": check_count("rounds", rounds, 1),
+            "saturation": check_range("saturation", saturation, 0.0, math.inf,
+                                      open_lower=True),
+            "shadow_ratio": check_range("shadow_ratio", shadow_ratio, 0.0, 1.0,
+                                        open_lower=True),
+            "shadow_floor": check_range("shadow_floor", shadow_floor, 0.0, math.inf),
+            "max_lanes": check_count("max_lanes", max_lanes, 1)}
+
+
+def _check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels to fit, bool (H, W) (default all); at least one."""
+    if mask is None:
+        return np.ones(shape, dtype=bool)
+    mask = np.asarray(mask)
+    if mask.shape != shape:
+        raise ValueError(f"mask has shape {mask.shape}; expected {shape}")
+    mask = mask.astype(bool)
+    if not mask.any():
+        raise ValueError("mask selects no pixel; it needs at least one True")
+    return mask
+
+
+def _fixed_albedo(fixed: Mapping, free: Sequence[str], grain_name: str,
+                  grain: GrainAlbedo | None, mask: np.ndarray) -> np.ndarray | None:
+    """The held albedo of the masked pixels (P, 3): a fixed grain size's, or the fixed albedo;
+    None when the albedo or the grain size is free."""
+    shape = mask.shape
+    if grain is not None and grain_name in fixed:
+        return grain(property_map(grain_name, fixed[grain_name], shape)[mask])[0]
+    if "albedo" in free or grain_name in free:
+        return None
+    if "albedo" not in fixed:
+        raise ValueError(f"albedo is neither free nor fixed; give fixed={{'albedo': ...}} "
+                         f"or free (or fix) the grain size {grain_name}")
+    a = np.asarray(fixed["albedo"], dtype=np.float64)
+    a = np.broadcast_to(a, shape + (3,)) if a.shape == (3,) else a
+    if a.shape != shape + (3,):
+        raise ValueError(f"fixed albedo has shape {a.shape}; expected (3,) or "
+                         f"({shape[0]}, {shape[1]}, 3)")
+    for c in range(3):
+        property_map("albedo", a[..., c], shape)
+    return a[mask]
+
+
+def _held(fixed: Mapping | None, free: list[str], mask: np.ndarray) -> dict:
+    """The held properties, checked against the free ones, by :class:`_FitData` field name:
+    ``fixed``, ``fixed_maps``, ``grain_name``, ``settings``, ``grain``, ``fixed_albedo``."""
+    fixed = dict(fixed or {})
+    for name in free:
+        if name in fixed:
+            raise ValueError(f"property {name!r} is both free and fixed")
+    fixed_maps = {n: property_map(n, v, mask.shape)[mask] for n, v in fixed.items()
+                  if n in MAP_PROPERTIES}
+    grain_name = grain_map_name(fixed)
+    wrong = [n for n in GRAIN_MAPS if n in free and n != grain_name]
+    if wrong:
+        raise ValueError(f"{wrong[0]} cannot be free with grains = "
+                         f"{fixed.get('grains', 'sphere')!r}; free {grain_name} instead")
+    settings = {n: v for n, v in fixed.items()
+                if n not in MAP_PROPERTIES and n != "albedo" and n != grain_name}
+    grain = None
+    if grain_name in free or grain_name in fixed:
+        if "albedo" in free or "albedo" in fixed:
+            raise ValueError(f"albedo and {grain_name} cannot both be given: the grains set the "
+                             "albedo per pixel; free or fix one of them")
+        grain = GrainAlbedo(grain_name, settings)
+    return {"fixed": fixed, "fixed_maps": fixed_maps, "grain_name": grain_name,
+            "settings": settings, "grain": grain,
+            "fixed_albedo": _fixed_albedo(fixed, free, grain_name, grain, mask)}
+
+
+def _set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | None,
+            mask: np.ndarray | None, fixed: Mapping | None, initial_gains: np.ndarray | None,
+            options: Mapping) -> _FitData:
+    """Check every input of :func:`fit_maps` (in the order of its arguments) and gather the
+    masked pixels' observations."""
+    imgs = check_images(images)
+    k, h, w, _ = imgs.shape
+    d = check_directions(directions)
+    if len(d) != k:
+        raise ValueError(f"directions has {len(d)} rows for {k} images; expected one per image")
+    free = _check_free(free)
+    checked = _check_options(**options)
+    g = check_gains(initial_gains, k)
+    mask = _check_mask(mask, (h, w))
+    held = _held(fixed, free, mask)
+    others = [n for n in free if n != "albedo" and n not in GRAIN_MAPS]
+    obs = np.ascontiguousarray(imgs[:, mask].transpose(1, 0, 2)).astype(np.float64)
+    return _FitData(obs=obs, d=d, mask=mask, free=free, others=others, gains=g,
+                    scale=float(np.mean(g)), **held, **checked)
+
+
+# ---------------------------------------------------------------------------
+#  Parameter layout
+# ---------------------------------------------------------------------------
+
+def _parameter_layout(data: _FitData) -> tuple[list[tuple[str, ParamSpec]], dict]:
+    """The variables of a pixel in column order (name, spec): the normal's slopes, the albedo
+    per channel or the grain size, the other free properties; and the specs by name, with the
+    correlation length bounded by what the lights resolve (:func:`max_correlation_length`).
+    """
+    layout: list[tuple[str, ParamSpec]] = [
+        ("slope_x", ParamSpec(-SLOPE_LIMIT, SLOPE_LIMIT, False, 0.0)),
+        ("slope_y", ParamSpec(-SLOPE_LIMIT, SLOPE_LIMIT, False, 0.0))]
+    if "albedo" in data.free:
+        layout += [(f"albedo{c}", SPECS["albedo"]) for c in range(3)]
+    if data.grain_name in data.free:
+        layout.append((data.grain_name, SPECS[data.grain_name]))
+    specs = dict(SPECS)
+    lc_max = max_correlation_length(data.d)
+    lc = specs["correlation_length"]
+    specs["correlation_length"] = ParamSpec(lc.lower, max(min(lc.upper, lc_max), 2 * lc.lower),
+                                            lc.log, min(lc.start, 0.8 * lc_max))
+    layout += [(n, specs[n]) for n in data.others]
+    return layout, specs
+
+
+class _Log:
+    """The fit's stages: kept for the result and passed to ``progress`` as they come."""
+
+    def __init__(self, progress: Callable[[str], None] | None):
+        self.stages: list[str] = []
+        self.progress = progress
+
+    def __call__(self, line: str) -> None:
+        self.stages.append(line)
+        if self.progress:
+            self.progress(line)
+
+
+# ---------------------------------------------------------------------------
+#  Starts
+# ---------------------------------------------------------------------------
+
+def _initial_start(starts: PixelStarts, data: _FitData, log: _Log
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Start rows and observation weights: shadows are flagged against the Lambertian
+    prediction twice, the second start without them (and with the grain-size search)."""
+    g = data.gains
+    wt = (~data.saturated).astype(np.float64)
+    for i in range(2):
+        y, n0, refl = starts(g, wt, search=i == 1)
+        pred = (np.maximum(n0 @ data.d.T, 0.0)[:, :, None] * refl[:, None, :] / np.pi
+                * g[None, :, None])
+        wt = data.flags(pred)
+    log(f"start: Lambertian photometric stereo on {len(data.obs)} pixels, "
+        f"{int(np.sum(wt == 0))} observations flagged")
+    return y, wt
+
+
+# ---------------------------------------------------------------------------
+#  Alternation: per-pixel maps and per-light gains
+# ---------------------------------------------------------------------------
+
+@dataclass
+class _State:
+    """The alternation's state: the pixels' rows, the gains and weights, the models."""
+
+    y: np.ndarray           # (P, variables + 1) fitted rows
+    gains: np.ndarray       # (K,)
+    weights: np.ndarray     # (P, K) observation weights in {0, 1}
+    value: np.ndarray       # (P, K, 3) the model without gain at the fitted rows
+    chunks: list[slice]
+    iterations: int = 0
+    evaluations: int = 0
+
+
+def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
+               y_start: np.ndarray, s: slice, with_gains: bool
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Fit the pixels ``s`` from ``y_start`` under the current gains; update ``state``; with
+    ``with_gains`` return their part of the gains' reduced system."""
+    prob = PixelProblem(ev, data.obs[s], state.weights[s], data.d, state.gains, layout,
+                        {n: v[s] for n, v in data.fixed_maps.items()},
+                        None if data.fixed_albedo is None else data.fixed_albedo[s], data.grain)
+    y_chunk = y_start[s].copy()
+    y_chunk[:, -1] = np.arange(len(y_chunk))
+    hold = np.zeros(len(layout) + 1, dtype=bool)
+    hold[-1] = True  # the pixel index
+    # hopeless = inf: pixels are not competing starts (inf x a zero cost, of a pixel with no
+    # used observation, is NaN and stops nothing: not a warning)
+    with np.errstate(invalid="ignore"):
+        fitted = batch_levenberg_marquardt(prob, y_chunk, data.max_iterations, hold=hold,
+                                           hopeless=math.inf)
+    state.y[s, :-1] = fitted.y[:, :-1]
+    state.iterations = max(state.iterations, fitted.iterations)
+    _, slopes, albedo, values, _ = prob.unpack(fitted.y)
+    part = None
+    if with_gains:
+        res, jac = prob.jacobian(fitted.y)
+        state.value[s], _ = ev(slopes, albedo, values, data.d)
+        part = gain_system(res, jac[:, :, :-1], state.value[s], prob.sqrt_w)
+    else:
+        state.value[s], _ = ev(slopes, albedo, values, data.d)
+    state.evaluations += prob.evaluations
+    return part
+
+
+def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: _FitData, layout: list,
+               y: np.ndarray, wt: np.ndarray, log: _Log) -> _State:
+    """Rounds of the per-pixel fit alternated with a Gauss-Newton step of the gains (mode
+    ``fit``) and new shadow flags; a final per-pixel fit follows the last gain update."""
+    npix, k = data.obs.shape[:2]
+    state = _State(y=y, gains=data.gains, weights=wt, value=np.zeros((npix, k, 3)),
+                   chunks=pixel_chunks(npix, k, data.max_lanes))
+    total = data.rounds + (1 if data.gain_mode == "fit" else 0)
+    for r in range(total):
+        last = r == total - 1
+        with_gains = data.gain_mode == "fit" and not last
+        reduced = np.zeros((k, k)), np.zeros(k)
+        # every round starts from the Lambertian start under the current gains: a warm start
+        # would keep pixels in the surface-lobe basin the previous gains led them to
+        y_start = starts(state.gains, state.weights)[0] if r > 0 else state.y
+        for s in state.chunks:
+            part = _fit_chunk(ev, data, layout, state, y_start, s, with_gains)
+            if part is not None:
+                reduced = reduced[0] + part[0], reduced[1] + part[1]
+        if with_gains:
+            state.gains = gain_step(state.gains, *reduced, data.scale)
+        model = state.value * state.gains[None, :, None]
+        if not last:
+            state.weights = data.flags(model)
+        rms = np.sqrt(np.sum(state.weights[:, :, None] * (model - data.obs) ** 2)
+                      / max(3 * np.sum(state.weights), 1))
+        log(f"round {r + 1}/{total}: Levenberg-Marquardt ({len(state.chunks)} chunk(s)), "
+            f"RMS residual {rms:.5g}, {int(np.sum(state.weights == 0))} observations left out")
+    return state
+
+
+# ---------------------------------------------------------------------------
+#  Result
+# ---------------------------------------------------------------------------
+
+def _result(ev: PixelEvaluator, data: _FitData, layout: list, specs: Mapping[str, ParamSpec],
+            state: _State, variant: str, log: _Log, t0: float) -> MapsResult:
+    """The maps of the fitted rows (NaN outside the mask), the residual per pixel, the
+    observations used, and the fit's options and diagnostics."""
+    h, w = data.mask.shape
+    npix, k = data.obs.shape[:2]
+
+    def to_map(values: np.ndarray, channels: int = 0) -> np.ndarray:
+        out = np.full((h, w, channels) if channels else (h, w), np.nan, dtype=np.float32)
+        out[data.mask] = values
+        return out
+
+    wt, g = state.weights, state.gains
+    prob = PixelProblem(ev, data.obs, wt, data.d, g, layout, data.fixed_maps,
+                        data.fixed_albedo, data.grain)
+    y_all = state.y.copy()
+    y_all[:, -1] = np.arange(npix)
+    _, slopes, albedo, values, _ = prob.unpack(y_all)
+    resid = (state.value * g[None, :, None] - data.obs) * wt[:, :, None]
+    rms_map = np.sqrt(np.sum(resid**2, axis=(1, 2)) / np.maximum(3 * wt.sum(axis=1), 1))
+    # a pixel with fewer used observations than variables is not determined: NaN residual
+    underdetermined = 3 * wt.sum(axis=1) < len(layout)
+    rms_map[underdetermined] = np.nan
+    used = np.zeros((k, h, w), dtype=bool)
+    used[:, data.mask] = (wt > 0).T
+    fit_settings = {
+        "free": data.free, "gains": data.gain_mode, "max_iterations": data.max_iterations,
+        "rounds": data.rounds, "saturation": data.saturation,
+        "shadow_ratio": data.shadow_ratio, "shadow_floor": data.shadow_floor,
+        "max_lanes": data.max_lanes, "chunks": len(state.chunks),
+        "correlation_length_max_um": specs["correlation_length"].upper,
+        "iterations_last_round": state.iterations, "evaluations": state.evaluations,
+        "underdetermined_pixels": int(np.sum(underdetermined)),
+        "seconds": time.perf_counter() - t0, "stages": log.stages,
+        "fixed": {n: v for n, v in data.fixed.items()
+                  if np.ndim(v) == 0 or isinstance(v, str)}}
+    return MapsResult(
+        normals=to_map(normals_of_slopes(slopes), 3), albedo=to_map(albedo, 3),
+        maps={n: to_map(v) for n, v in values.items()}, settings=data.settings,
+        residual_rms=to_map(rms_map), gains=g, used=used, free=data.free, mask=data.mask,
+        variant=variant, fit_settings=fit_settings)
+
+
+# ---------------------------------------------------------------------------
+#  Fit
+# ---------------------------------------------------------------------------
+
+def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | None = None,
+             mask: np.ndarray | None = None, fixed: Mapping | None = None,
+             gains: str = "fit", initial_gains: np.ndarray | None = None,
+             max_iterations: int = 30, rounds: int = 3, saturation: float = 0.99,
+             shadow_ratio: float = 0.5, shadow_floor: float = 0.03, variant: str = VARIANT,
+             max_lanes: int = MAX_LANES, progress: Callable[[str], None] | None = None
+             ) -> MapsResult:
+    """Fit a normal and powder properties to every pixel of an RTI capture.
+
+    Args:
+        images: (K, H, W, 3) linear pixel values, 1.0 = the encoding's maximum.
+        directions: (K, 3) vectors towards the lights (image frame; normalised here).
+        free: properties fitted per pixel besides the normal: ``albedo`` (3 channels), a grain
+            size of :data:`~mitsuba_powder.rti.properties.GRAIN_MAPS` instead of the albedo,
+            and any of :data:`~mitsuba_powder.rti.properties.MAP_PROPERTIES`; default
+            :data:`~mitsuba_powder.rti.properties.MAP_DEFAULT_FREE`. At most 10 numbers per
+            pixel (normal 2 + albedo 3 + 5 more).
+        mask: bool (H, W) pixels to fit (default all).
+        fixed: plugin properties held: floats or (H, W) maps of
+            :data:`~mitsuba_powder.rti.properties.MAP_PROPERTIES` (not free), ``albedo`` as
+            (3,) or (H, W, 3) when not free, and settings (``lobes``, ``specular``,
+            ``material``, ``rgb_wavelengths``, ...).
+        gains: ``fit`` (per-light gains shared by all pixels, mean 1) or ``fixed``
+            (``initial_gains``, default 1).
+        initial_gains: (K,) start (``fit``) or value (``fixed``) of the gains.
+        max_iterations: Levenberg-Marquardt iterations per round, >= 1.
+        rounds: alternations of the per-pixel fit with the gains (and the shadow flags), >= 1;
+            a final per-pixel fit follows the last gain update.
+        saturation: observations with any channel >= this are left out, in (0, inf).
+        shadow_ratio, shadow_floor: an observation is "shadowed" (left out) when its channel
+            mean is below the model's prediction by more than ``max(shadow_ratio x predicted,
+            shadow_floor)``; ratio in (0, 1], floor (linear units) >= 0.
+        variant: an RGB variant (``llvm_ad_rgb``, ``cuda_ad_rgb``).
+        max_lanes: pixels x lights per plugin evaluation (and per optimiser batch) at most.
+        progress: called with a line of text after each stage.
+
+    Returns:
+        A :class:`~mitsuba_powder.rti.result.MapsResult`.
+    """
+    t0 = time.perf_counter()
+    data = _set_up(images, directions, free, mask, fixed, initial_gains,
+                   {"gains": gains, "max_iterations": max_iterations, "rounds": rounds,
+                    "saturation": saturation, "shadow_ratio": shadow_ratio,
+                    "shadow_floor": shadow_floor, "max_lanes": max_lanes})
+    ev = PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
+    layout, specs = _parameter_layout(data)
+    log = _Log(progress)
+    starts = PixelStarts(ev, data.obs, data.d, layout, specs, data.free, data.others,
+                         data.grain_name, data.fixed_maps, data.grain, data.max_lanes)
+    y, wt = _initial_start(starts, data, log)
+    state = _alternate(ev, starts, data, layout, y, wt, log)
+    return _result(ev, data, layout, specs, state, variant, log, t0)
