@@ -216,7 +216,7 @@ def test_spectral_thick_only_if_every_lane_is(values, path):
                                           ("llvm_ad_mono", "tau_o")])
 def test_one_value_per_lane_takes_every_lane_into_account(variant, name):
     """Parameters set through mi.traverse with one value per lane (batched fits, e.g.
-    mitsuba_powder.rti): the saturated-cone shortcut and the range checks must hold for every lane, not
+    the RTI fits): the saturated-cone shortcut and the range checks must hold for every lane, not
     only the first. Lane 0 is saturated (2 c0 tau_o >= 18), some others are not; each lane
     must equal a separately loaded instance (the shortcut once took lane 0 for all: 0.1 % off
     near back-scattering for albedo 0.99)."""

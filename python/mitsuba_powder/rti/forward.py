@@ -28,9 +28,9 @@ irradiance" when ``E_k = 1``; a Lambertian white (``f = 1/pi``) at normal incide
 
 All pixels x lights are one plugin evaluation: lane ``p K + k`` is pixel p under light k, the
 per-pixel properties reach the lanes by ``dr.gather`` from per-pixel arrays assigned through
-``mi.traverse`` (as :class:`mitsuba_powder.plugin.brf.BatchBRF` does per parameter set), the albedo as
-a per-lane ``albedo.value`` colour. Evaluations are chunked over pixels when pixels x lights
-exceeds ``max_lanes``.
+``mi.traverse`` (as :class:`mitsuba_powder.plugin.brf.BatchBRF` does per parameter set), the
+albedo as a per-lane ``albedo.value`` colour. Evaluations are chunked over pixels when pixels x
+lights exceeds ``max_lanes``.
 """
 
 from __future__ import annotations
