@@ -51,6 +51,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .lights import unit_directions
+
 __all__ = ["MAX_DEGREE", "GainModel", "fit_gain_model", "gain_basis"]
 
 #: Highest polynomial degree in l_z (a dome has a handful of rings)
@@ -59,18 +61,6 @@ MAX_DEGREE = 6
 MAX_AZIMUTH_ORDER = 2
 #: The ``kind`` tag of a serialised model
 KIND = "mitsuba-powder gain model"
-
-
-def _directions(directions: np.ndarray, name: str = "directions") -> np.ndarray:
-    d = np.asarray(directions, dtype=np.float64)
-    if d.ndim != 2 or d.shape[1] != 3:
-        raise ValueError(f"{name} has shape {d.shape}; expected (K, 3)")
-    norm = np.linalg.norm(d, axis=1)
-    bad = ~np.all(np.isfinite(d), axis=1) | (norm == 0)
-    if np.any(bad):
-        k = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name}[{k}] = {d[k].tolist()} is not a finite non-zero vector")
-    return d / norm[:, None]
 
 
 def _order(name: str, value, upper: int) -> int:
@@ -96,7 +86,7 @@ def gain_basis(directions: np.ndarray, degree: int = 2, azimuth_order: int = 0,
         columns ``1, l_z, ..., l_z^degree`` then the azimuthal ones; n = degree + 1 + 2
         azimuth_order.
     """
-    d = _directions(directions)
+    d = unit_directions(directions)
     degree = _order("degree", degree, MAX_DEGREE)
     azimuth_order = _order("azimuth_order", azimuth_order, MAX_AZIMUTH_ORDER)
     t = d[:, 2] if lz_range is None else np.clip(d[:, 2], *lz_range)
@@ -142,7 +132,7 @@ class GainModel:
     def matches(self, directions: np.ndarray, match_degrees: float = 0.01) -> np.ndarray:
         """(K',) index of the fitted light within ``match_degrees`` of each direction (the
         nearest), -1 where none is."""
-        d = _directions(directions)
+        d = unit_directions(directions)
         cos = d @ self.directions.T
         best = np.argmax(cos, axis=1)
         near = cos[np.arange(len(d)), best] >= math.cos(math.radians(match_degrees))
@@ -219,7 +209,7 @@ class GainModel:
         if not strength >= 0:
             raise ValueError(f"gain model: strength = {data['strength']!r} is out of range; "
                              "valid range is [0, inf] (None: inf)")
-        d = _directions(data["directions"], "gain model: directions")
+        d = unit_directions(data["directions"], "gain model: directions")
         res = np.asarray(data["residuals"], dtype=np.float64)
         if res.shape != (len(d),) or not np.all(np.isfinite(res)):
             raise ValueError(f"gain model: residuals of shape {res.shape}; expected "
@@ -251,7 +241,7 @@ def fit_gain_model(directions: np.ndarray, gains: np.ndarray, weights: np.ndarra
             too few distinct elevations for the degree, directions that do not determine the
             azimuthal terms.
     """
-    d = _directions(directions)
+    d = unit_directions(directions)
     g = np.asarray(gains, dtype=np.float64)
     if g.shape != (len(d),):
         raise ValueError(f"gains has shape {g.shape}; expected ({len(d)},), one per direction")

@@ -58,7 +58,7 @@ import numpy as np
 
 __all__ = ["LP_KINDS", "UNIT_TOLERANCE", "LightRig", "check_distance", "half_diagonal",
            "image_light_field", "light_field", "light_field_derivatives", "pixel_coordinates",
-           "point_lights", "read_lp_rig", "rig_from_vectors"]
+           "point_lights", "read_lp_rig", "rig_from_vectors", "unit_directions"]
 
 #: How far from 1 the norm of an ``.lp`` vector may be for the vector to count as a unit
 #: direction (relative; dome calibrations print 6 decimals)
@@ -68,8 +68,9 @@ UNIT_TOLERANCE = 1e-2
 LP_KINDS = ("auto", "directions", "positions")
 
 
-def _unit_directions(directions: np.ndarray, name: str = "directions") -> np.ndarray:
-    """(K, 3) finite non-zero vectors -> unit float64 vectors."""
+def unit_directions(directions: np.ndarray, name: str = "directions") -> np.ndarray:
+    """(K, 3) finite non-zero vectors, K >= 1 -> unit float64 vectors (a copy); the error
+    names ``name`` and the first bad row."""
     d = np.array(directions, dtype=np.float64)
     if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
         raise ValueError(f"{name} has shape {d.shape}; expected (K, 3) with K >= 1")
@@ -98,7 +99,7 @@ class LightRig:
     distance: float | np.ndarray = math.inf
 
     def __post_init__(self) -> None:
-        d = _unit_directions(self.directions)
+        d = unit_directions(self.directions)
         d.setflags(write=False)
         object.__setattr__(self, "directions", d)
         r = np.array(self.distance, dtype=np.float64)
@@ -362,7 +363,7 @@ def rig_from_vectors(vectors: np.ndarray, kind: str = "auto", image_width: float
             ``image_width``, a distance given with positions, values out of range.
     """
     v = np.asarray(vectors, dtype=np.float64)
-    _unit_directions(v, "vectors")
+    unit_directions(v, "vectors")
     labels = list(where) if where is not None else [f"vector {k}" for k in range(len(v))]
     if len(labels) != len(v):
         raise ValueError(f"where has {len(labels)} labels for {len(v)} vectors")
