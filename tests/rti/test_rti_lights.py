@@ -78,6 +78,10 @@ def test_rig_validation():
     with pytest.raises(ValueError):
         rig.directions[0, 0] = 1.0  # read-only
     assert LightRig(DIRS).is_distant
+    part = LightRig(DIRS, [2.0, 3.0, 4.0, math.inf]).take([3, 1])
+    np.testing.assert_array_equal(part.directions, DIRS[[3, 1]])
+    np.testing.assert_array_equal(part.distances, [math.inf, 3.0])
+    assert rig.take([2]).distance == 3.0 and rig.with_distance(5.0).distance == 5.0
     np.testing.assert_array_equal(LightRig(DIRS).inverse_distances, 0.0)
     for bad in (0.0, -1.0, math.nan):
         with pytest.raises(ValueError, match=r"distance = .* out of range; valid range is "

@@ -152,6 +152,13 @@ class LightRig:
             raise ValueError(f"light {k} is distant (distance = inf): it has no position")
         return r[:, None] * self.directions
 
+    def take(self, indices: np.ndarray | Sequence[int]) -> LightRig:
+        """The lights ``indices`` (e.g. the kept or held-out lights of a comparison), each
+        with its own distance."""
+        idx = np.asarray(indices, dtype=np.int64)
+        r = self.distance if np.ndim(self.distance) == 0 else self.distances[idx]
+        return LightRig(self.directions[idx], r)
+
     def with_distance(self, distance: float | np.ndarray) -> LightRig:
         """The same directions at another distance (number or (K,), image widths)."""
         return LightRig(self.directions, distance)
