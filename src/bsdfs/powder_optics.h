@@ -33,16 +33,24 @@
 #include <utility>
 #include <vector>
 
+#include "powder_registry.h"
+
 /* Self-contained (no Mitsuba headers): the plugin includes it, and so does the
    Python module mitsuba_powder._optics, which exposes the same double-precision
    code to Python (tests against miepython, colour helper). */
 namespace powder {
 
-/// Raise std::runtime_error with the streamed arguments as message
-template <typename... Args> [[noreturn]] void fail(const Args &...args) {
-    std::ostringstream oss;
-    (oss << ... << args);
-    throw std::runtime_error(oss.str());
+/**
+ * The albedo of two grain populations of radii r1, r2, the second at volume fraction f2
+ * (docs/model.md, "Single-scattering albedo rho from the grains"): rho = sum_j (f_j / r_j)
+ * Q_sca,j / sum_j (f_j / r_j) Q_ext,j. Generic: doubles here, and per lane and channel
+ * in the plugin's spatially varying grains.
+ */
+template <typename Q, typename R>
+Q population_mix(const Q &q_ext1, const Q &q_sca1, const R &r1, const Q &q_ext2,
+                 const Q &q_sca2, const R &r2, const R &f2) {
+    R w1 = (1.f - f2) / r1, w2 = f2 / r2;
+    return (w1 * q_sca1 + w2 * q_sca2) / (w1 * q_ext1 + w2 * q_ext2);
 }
 
 /// Complex refractive index tabulated against wavelength (micrometres)
@@ -440,7 +448,7 @@ inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> 
     AlbedoRow row;
     auto a = population(g, g.r1, wl_nm, m, "radius", derivatives);
     double r1 = g.r1, f2 = g.f2, w1 = (1.0 - f2) / r1;
-    double ns = w1 * a[1], ne = w1 * a[0];
+    double ne = w1 * a[0], rho = a[1] / a[0]; // (sum_j (f_j / r_j) Q_ext,j: derivatives)
     double dns_r1 = (1.0 - f2) * (a[3] / r1 - a[1] / (r1 * r1)),
            dne_r1 = (1.0 - f2) * (a[2] / r1 - a[0] / (r1 * r1));
     double dns_r2 = 0.0, dne_r2 = 0.0, dns_f = -a[1] / r1, dne_f = -a[0] / r1;
@@ -449,9 +457,8 @@ inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> 
     if (g.two) {
         double r2 = g.r2;
         auto b = population(g, r2, wl_nm, m, "radius2", derivatives);
-        double w2 = f2 / r2;
-        ns += w2 * b[1];
-        ne += w2 * b[0];
+        ne += f2 / r2 * b[0];
+        rho = population_mix(a[0], a[1], r1, b[0], b[1], r2, f2);
         dns_r2 = f2 * (b[3] / r2 - b[1] / (r2 * r2));
         dne_r2 = f2 * (b[2] / r2 - b[0] / (r2 * r2));
         dns_f += b[1] / r2;
@@ -459,7 +466,6 @@ inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> 
         row.q_ext2 = b[0];
         row.q_sca2 = b[1];
     }
-    double rho = ns / ne;
     row.rho = rho;
     if (derivatives) {
         row.d_r1 = (dns_r1 - rho * dne_r1) / ne;
