@@ -14,9 +14,8 @@
 #include <vector>
 
 #include "powder_energy.h"
+#include "powder_grains.h"
 #include "powder_lobes.h"
-#include "powder_params.h"
-#include "powder_tables.h"
 #include "powder_terms.h"
 #include "powder_volume.h"
 
@@ -213,21 +212,35 @@ the Harvey-Shack (or Gaussian) surface term. The material is one-sided.
         'amplitude_surface': 1e-4,
 */
 template <typename Float, typename Spectrum>
-class Powder final : public BSDF<Float, Spectrum> {
+class Powder final : public BSDF<Float, Spectrum>, public PowderGrains<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
     MI_IMPORT_TYPES(Texture)
-
-    enum class SpecularModel : uint32_t { HarveyShack = 0, Gaussian = 1 };
-    using Tables = PowderTables<Float, Spectrum>;
+    using Grains = PowderGrains<Float, Spectrum>;
+    using typename Grains::Tables;
+    using typename Grains::FloatStorage;
+    using typename Grains::SpecularModel;
+    using Lobes = powder_param::Lobes;
     using Volume = PowderVolume<Float, Spectrum>;
     using VolumeConstants = typename Volume::Constants;
     using Energy = PowderEnergy<Float, Spectrum>;
-    using Textures = PowderTextures<Float, Spectrum>;
-    using FloatStorage = typename Tables::FloatStorage;
-    using Lobes = powder_param::Lobes;
-    static constexpr int TableSize = Tables::TableSize;
-    static constexpr float TableMin = Tables::TableMin, TableStep = Tables::TableStep;
+    using Grains::TableSize;
+    // the properties (powder_params.h) and the grains (powder_grains.h)
+    using Grains::m_albedo, Grains::m_av, Grains::m_g, Grains::m_kappa, Grains::m_tau_o,
+        Grains::m_thickness, Grains::m_radius, Grains::m_radius2, Grains::m_fraction2,
+        Grains::m_agglomerate_radius, Grains::m_agglomerate_fill, Grains::m_textures,
+        Grains::m_grain_model, Grains::m_mixing, Grains::m_tau_given, Grains::m_two_populations,
+        Grains::m_specular, Grains::m_surface_fresnel, Grains::m_cosine_only,
+        Grains::m_conserving, Grains::m_lobes, Grains::m_wavelength, Grains::m_rgb_wavelengths,
+        Grains::m_optics, Grains::m_mie, Grains::m_tau_table, Grains::m_tau_table_constant,
+        Grains::m_packed, Grains::m_rho_channels, Grains::m_tau_channels, Grains::m_fresnel,
+        Grains::m_grain, Grains::m_grain_rho_mean, Grains::m_lc, Grains::m_sigma, Grains::m_as;
+    using Grains::at, Grains::textured, Grains::in_use, Grains::member, Grains::agglomerate,
+        Grains::grain_textured, Grains::table_param, Grains::uniform_spectrum_albedo,
+        Grains::wavelengths_um, Grains::inverse_wavelengths_um, Grains::mean_wavelength,
+        Grains::albedo, Grains::tau_o, Grains::lookup_grains, Grains::read_properties,
+        Grains::warn_outside_regime, Grains::read_grain_index, Grains::check_parameters,
+        Grains::update_grains;
 
     Powder(const Properties &props) : Base(props) {
         read_properties(props);
@@ -372,13 +385,13 @@ public:
     Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                   const Vector3f &wo, Mask active) const override {
         MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
-        Lobes lobes = enabled_lobes(ctx);
-        if (unlikely(!lobes.any()))
-            return 0.f;
-        active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
-        UnpolarizedSpectrum value =
-            eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
-        return depolarizer<Spectrum>(dr::select(active, value, 0.f));
+        if (Lobes lobes = enabled_lobes(ctx); likely(lobes.any())) {
+            active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
+            UnpolarizedSpectrum value =
+                eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
+            return depolarizer<Spectrum>(dr::select(active, value, 0.f));
+        }
+        return 0.f;
     }
 
     Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
@@ -508,516 +521,7 @@ private:
         return l;
     }
 
-    // ---------------------------------------------------------- properties
-
-    /// Read and check the properties (powder_params.h, the tables of powder_registry.h)
-    void read_properties(const Properties &props) {
-        using namespace powder_param;
-        m_tau_given = props.has_property("tau_o");
-        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
-        std::tie(m_grain_model, m_mixing) = read_grain_model(props);
-        // The float parameters; a fittable one may be a texture (evaluated at si.uv)
-        for (size_t i = 0; i < Count; ++i) {
-            const Spec &spec = Table[i];
-            double value = spec.def;
-            if (props.has_property(spec.name)) {
-                auto type = props.type(spec.name);
-                if (spec.fittable && (type == Properties::Type::Object ||
-                                      type == Properties::Type::Reference ||
-                                      type == Properties::Type::ResolvedReference)) {
-                    m_textures[i] = props.get_texture<Texture>(spec.name);
-                    Textures::check((Id) i, m_textures[i].get());
-                } else {
-                    value = props.get<double>(spec.name);
-                    check_range(spec.name, value, spec.range);
-                }
-            }
-            this->*member((Id) i) = Float((ScalarFloat) value);
-        }
-        m_specular = (SpecularModel) read_choice<2>(props, "specular", SpecularValues);
-        m_surface_fresnel = read_choice<2>(props, "surface_fresnel", SurfaceFresnelValues) == 1;
-        if (m_surface_fresnel && m_tau_given && !props.has_property("eta") &&
-            !props.has_property("material"))
-            Throw("powder: property \"surface_fresnel\" = \"fresnel\" needs the grain "
-                  "material's index, which \"tau_o\" given alone does not fix: give \"eta\" "
-                  "and \"k\" (or \"material\") too, or surface_fresnel = \"none\"");
-        m_lobes = parse_lobes(props.get<std::string>("lobes", LobeList.def));
-        m_cosine_only = read_choice<2>(props, "sampling", SamplingValues) == 1;
-        m_conserving = read_choice<2>(props, "energy", EnergyValues) == 1;
-        if (m_conserving)
-            for (size_t i = 0; i < Count; ++i)
-                if (is_normalisation_param((Id) i) && textured((Id) i))
-                    Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
-                          "uniform \"%s\" (the normalisation is tabulated per wavelength and "
-                          "incidence), but it is a texture; use energy = \"paper\" or a "
-                          "float", Table[i].name);
-        double wavelength = props.get<double>("wavelength", WavelengthNumber.def);
-        check_range(WavelengthNumber.name, wavelength, WavelengthNumber.range);
-        m_wavelength = (ScalarFloat) wavelength;
-        std::array<double, 3> rgb = read_rgb_wavelengths(props);
-        for (size_t i = 0; i < 3; ++i)
-            m_rgb_wavelengths[i] = (ScalarFloat) rgb[i];
-        m_optics = load_optics(props);
-        if (props.has_property("albedo")) {
-            m_albedo = props.get_texture<Texture>("albedo");
-            Textures::check_albedo(m_albedo.get(), TableSize, TableMin);
-            if (m_conserving && m_albedo->is_spatially_varying())
-                Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
-                      "uniform albedo (the normalisation is tabulated per wavelength and "
-                      "incidence), but property \"albedo\" is a spatially varying texture; "
-                      "use energy = \"paper\" or a uniform albedo");
-        }
-    }
-
-    /// The grain index at the wavelengths (nm) of the grain tables: a 1 nm grid for
-    /// spectral variants, the evaluation wavelengths otherwise; with it tau_o (Fresnel)
-    /// and the surface_fresnel index
-    void read_grain_index() {
-        if constexpr (is_spectral_v<Spectrum>) {
-            for (int i = 0; i < TableSize; ++i)
-                m_table_wavelengths.push_back(TableMin + i * TableStep);
-        } else if constexpr (is_rgb_v<Spectrum>) {
-            m_table_wavelengths.assign(m_rgb_wavelengths, m_rgb_wavelengths + 3);
-        } else {
-            m_table_wavelengths.push_back(m_wavelength);
-        }
-        for (double wl : m_table_wavelengths)
-            m_index.push_back(m_optics.eval(wl * 1e-3)); // throws if outside the table
-        if (!m_albedo)
-            warn_crystallite_size();
-        if (!m_tau_given) {
-            std::vector<ScalarFloat> tau;
-            for (const auto &m : m_index)
-                tau.push_back((ScalarFloat) powder::tau_o_fresnel(m.real()));
-            m_tau_table = Tables::load(tau);
-            m_tau_table_constant =
-                std::all_of(tau.begin(), tau.end(), [&](ScalarFloat t) { return t == tau[0]; });
-        }
-        if (m_surface_fresnel)
-            m_fresnel = Tables::fresnel_index(m_index, m_table_wavelengths);
-    }
-
-    /// Check every parameter in use (a value per lane: each lane), as after an edit
-    void check_parameters() const {
-        for (size_t i = 0; i < powder_param::Count; ++i) {
-            powder_param::Id p = (powder_param::Id) i;
-            if (!in_use(p))
-                continue;
-            if (m_textures[i]) {
-                Textures::check(p, m_textures[i].get());
-                continue;
-            }
-            const Float &v = this->*member(p);
-            powder_param::check_lanes(p, v);
-            // the grain tables are built from one value (one per lane would be ignored),
-            // and so is the normalisation of energy = "conserving"
-            if (dr::width(v) > 1 && m_conserving && powder_param::is_normalisation_param(p))
-                Throw("powder: property \"%s\" holds %zu values (one per lane); with energy "
-                      "= \"conserving\" it takes one value (the normalisation is tabulated "
-                      "for one); use energy = \"paper\" for one value per lane",
-                      powder_param::Table[i].name, dr::width(v));
-            if (dr::width(v) > 1 && powder_param::is_grain_param(p))
-                Throw("powder: property \"%s\" holds %zu values (one per lane); a grain "
-                      "property takes one value, or a texture for one per surface point",
-                      powder_param::Table[i].name, dr::width(v));
-        }
-    }
-
-    /// Largest kappa / k0 inside the regime of enhanced back-scattering theory
-    /// (narrow coherent cone), above which the constructor warns
-    static constexpr double RegimeLimit = 0.25;
-
-    /// Warn when kappa / k0 = kappa lambda / (2 pi) exceeds RegimeLimit at a wavelength
-    /// the powder is evaluated at (k0 is smallest at the longest one): the rgb_wavelengths,
-    /// `wavelength` (mono) or the spectral table's range
-    void warn_outside_regime() const {
-        double lam_nm;
-        if constexpr (is_spectral_v<Spectrum>)
-            lam_nm = TableMin + (TableSize - 1) * TableStep;
-        else if constexpr (is_rgb_v<Spectrum>)
-            lam_nm = std::max({ (double) m_rgb_wavelengths[0], (double) m_rgb_wavelengths[1],
-                                (double) m_rgb_wavelengths[2] });
-        else
-            lam_nm = m_wavelength;
-        double kappa = textured(powder_param::Extinction)
-                           ? texture_values(powder_param::Extinction).hi : value_of(m_kappa),
-               ratio = kappa * lam_nm * 1e-3 / (2.0 * M_PI);
-        if (ratio > RegimeLimit)
-            Log(Warn,
-                "powder: property \"extinction\" = %g 1/um (its largest value) gives "
-                "kappa/k0 = %.4g at %g nm, "
-                "above the threshold 0.25: outside the narrow-cone regime of enhanced "
-                "back-scattering theory (kappa/k0 << 1), where the coherent term is not "
-                "physical (with energy=\"paper\" a white powder reflects more than it "
-                "receives; see docs/powder.md, \"Energy\")",
-                kappa, ratio, lam_nm);
-    }
-
-    /// Largest crystallite size parameter for which a mixing rule holds (docs/model.md)
-    static constexpr double CrystalliteLimit = 0.5;
-
-    /// Agglomerates: warn when the crystallites are too large for a mixing rule
-    /// (size parameter 2 pi r |n + ik| / lambda above CrystalliteLimit at some wavelength)
-    void warn_crystallite_size() const {
-        if (m_grain_model != powder::GrainModel::Agglomerate)
-            return;
-        std::vector<double> x = powder::crystallite_size_parameters(
-            value_of(m_radius), m_table_wavelengths, m_index);
-        size_t worst = 0, over = 0;
-        double longest = 0.0; // longest wavelength (nm) above the limit
-        for (size_t i = 0; i < x.size(); ++i) {
-            if (x[i] > x[worst])
-                worst = i;
-            if (x[i] > CrystalliteLimit) {
-                ++over;
-                longest = std::max(longest, m_table_wavelengths[i]);
-            }
-        }
-        if (over > 0)
-            Log(Warn,
-                "powder: crystallites of radius %g um have the size parameter 2 pi r |n + ik| "
-                "/ lambda = %.3g at %g nm, above %g (the limit of an effective-medium mixing "
-                "rule) at %zu of the %zu wavelengths evaluated, the longest %g nm; the "
-                "agglomerate albedo is outside the model's validity there (docs/model.md, \"Grain "
-                "models\")", value_of(m_radius), x[worst], m_table_wavelengths[worst],
-                CrystalliteLimit, over, x.size(), longest);
-    }
-
-    /// The value of a parameter that holds one value (lane 0 of a JIT array)
-    template <typename T> static double value_of(const T &v) { return (double) dr::slice(v); }
-
-    /// The member holding a float parameter of the table powder_param::Table
-    static Float Powder::*member(powder_param::Id p) {
-        static constexpr Float Powder::*members[powder_param::Count] = {
-            &Powder::m_av, &Powder::m_g, &Powder::m_kappa, &Powder::m_tau_o,
-            &Powder::m_thickness, &Powder::m_as, &Powder::m_lc, &Powder::m_sigma,
-            &Powder::m_radius, &Powder::m_radius2, &Powder::m_fraction2,
-            &Powder::m_agglomerate_radius, &Powder::m_agglomerate_fill
-        };
-        return members[p];
-    }
-
-    /// Whether a parameter enters the model as configured (range-checked, traversed)
-    bool in_use(powder_param::Id p) const {
-        switch (p) {
-            case powder_param::TauO: return m_tau_given;
-            case powder_param::Radius: return !m_albedo && !agglomerate();
-            case powder_param::Radius2:
-            case powder_param::Fraction2: return !m_albedo && m_two_populations;
-            case powder_param::AgglomerateRadius:
-            case powder_param::AgglomerateFill: return !m_albedo && agglomerate();
-            case powder_param::CorrelationLength:
-                return m_specular == SpecularModel::HarveyShack;
-            case powder_param::Sigma: return m_specular == SpecularModel::Gaussian;
-            default: return true;
-        }
-    }
-
-    bool agglomerate() const { return m_grain_model == powder::GrainModel::Agglomerate; }
-
-    /// Whether a float parameter is given as a texture
-    bool textured(powder_param::Id p) const { return (bool) m_textures[p]; }
-
-    /// A float parameter at an interaction: its texture at si.uv, or its value
-    Float at(powder_param::Id p, const SurfaceInteraction3f &si, Mask active) const {
-        if (m_textures[p])
-            return m_textures[p]->eval_1(si, active);
-        DRJIT_MARK_USED(si);
-        DRJIT_MARK_USED(active);
-        return this->*member(p);
-    }
-
-    TextureValues<Float, Spectrum> texture_values(powder_param::Id p) const {
-        return TextureValues<Float, Spectrum>::of(m_textures[p].get());
-    }
-
-    // ------------------------------------------------------- wavelengths
-
-    /// Evaluation wavelengths in micrometres, one per channel
-    UnpolarizedSpectrum wavelengths_um(const SurfaceInteraction3f &si) const {
-        if constexpr (is_spectral_v<Spectrum>) {
-            return si.wavelengths * 1e-3f;
-        } else if constexpr (is_rgb_v<Spectrum>) {
-            return UnpolarizedSpectrum(m_rgb_wavelengths[0] * 1e-3f,
-                                       m_rgb_wavelengths[1] * 1e-3f,
-                                       m_rgb_wavelengths[2] * 1e-3f);
-        } else {
-            DRJIT_MARK_USED(si);
-            return UnpolarizedSpectrum(m_wavelength * 1e-3f);
-        }
-    }
-
-    /// 1 / wavelength in 1/micrometre, one per channel (1e3 / lambda_nm: one division
-    /// per channel in spectral variants, constants otherwise)
-    UnpolarizedSpectrum inverse_wavelengths_um(const SurfaceInteraction3f &si) const {
-        if constexpr (is_spectral_v<Spectrum>)
-            return 1e3f / si.wavelengths;
-        else
-            return dr::rcp(wavelengths_um(si));
-    }
-
-    /// Mean evaluation wavelength in micrometres (sets the sampling lobe widths)
-    Float mean_wavelength(const SurfaceInteraction3f &si) const {
-        if constexpr (is_spectral_v<Spectrum>) {
-            return dr::mean(si.wavelengths) * 1e-3f;
-        } else if constexpr (is_rgb_v<Spectrum>) {
-            DRJIT_MARK_USED(si);
-            return (m_rgb_wavelengths[0] + m_rgb_wavelengths[1] + m_rgb_wavelengths[2]) *
-                   (1e-3f / 3.f);
-        } else {
-            DRJIT_MARK_USED(si);
-            return m_wavelength * 1e-3f;
-        }
-    }
-
-    // ------------------------------------------------------------- grains
-
-    /// Single-scattering albedo per channel: the `albedo` texture or the grain tables
-    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
-        if (m_albedo)
-            return m_albedo->eval(si, active);
-        if (grain_textured())
-            return grain_texture_albedo(si, active);
-        if constexpr (is_spectral_v<Spectrum>)
-            return lookup_grains(si, active).first;
-        else
-            return m_rho_channels;
-    }
-
-    /// Extrapolation ratio per channel: the `tau_o` property or the Fresnel table
-    UnpolarizedSpectrum tau_o(const SurfaceInteraction3f &si, Mask active) const {
-        if (m_tau_given)
-            return UnpolarizedSpectrum(at(powder_param::TauO, si, active));
-        if constexpr (is_spectral_v<Spectrum>)
-            return lookup_grains(si, active).second;
-        else
-            return m_tau_channels;
-    }
-
-    /// Spectral variants: (rho, tau_o) per channel from the records of m_packed, with the
-    /// same linear interpolation as Tables::lookup in one packet gather per channel
-    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
-    lookup_grains(const SurfaceInteraction3f &si, Mask active) const {
-        UnpolarizedSpectrum rho(0.f), tau(0.f);
-        Tables::template read_records<4>(m_packed, si, active, [&](size_t c, auto value) {
-            rho[c] = value(0);
-            tau[c] = value(1);
-        });
-        return { rho, tau };
-    }
-
-    /// The grain tables after a change of the grain parameters (`keys`: those edited;
-    /// none: all), and what eval reads of them
-    void update_grains(const std::vector<std::string> &keys) {
-        bool grains_changed = keys.empty();
-        for (size_t i = 0; i < powder_param::Count; ++i)
-            if (powder_param::is_grain_param((powder_param::Id) i))
-                grains_changed |= string::contains(keys, powder_param::Table[i].name);
-        if (!m_albedo && grain_textured())
-            update_grain_texture_table();
-        else if (!m_albedo && grains_changed)
-            update_mie_tables();
-        if (m_albedo && (keys.empty() || string::contains(keys, "albedo")))
-            Textures::check_albedo(m_albedo.get(), TableSize, TableMin);
-
-        if constexpr (is_spectral_v<Spectrum>) {
-            // records (rho[i], rho[i + 1], tau[i], tau[i + 1]) for lookup_grains (zeros for
-            // a table not in use); differentiable through the gathers from the tables
-            FloatStorage zeros = dr::zeros<FloatStorage>(TableSize);
-            m_packed = Tables::interval_records(
-                { m_albedo ? &zeros : &m_mie.rho, m_tau_given ? &zeros : &m_tau_table },
-                (uint32_t) TableSize);
-        } else {
-            // RGB and mono: one value per channel, as opaque scalars, so that eval reads a
-            // broadcast value instead of gathering
-            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
-                if (!m_albedo)
-                    m_rho_channels[c] = dr::gather<Float>(m_mie.rho, UInt32((uint32_t) c));
-                if (!m_tau_given)
-                    m_tau_channels[c] = dr::gather<Float>(m_tau_table, UInt32((uint32_t) c));
-            }
-            dr::make_opaque(m_rho_channels, m_tau_channels);
-        }
-    }
-
-    /// The grains of the constant grain parameters
-    powder::Grains grains() const {
-        return { value_of(m_radius), value_of(m_radius2), value_of(m_fraction2),
-                 m_two_populations, m_grain_model, value_of(m_agglomerate_radius),
-                 value_of(m_agglomerate_fill), m_mixing };
-    }
-
-    /// The Mie tables; rho's derivatives are attached as tangents when gradients are
-    /// tracked on a grain parameter
-    void update_mie_tables() {
-        std::vector<std::pair<const Float *, double powder::AlbedoRow::*>> params;
-        for (auto [p, d] : { std::pair{ powder_param::Radius, &powder::AlbedoRow::d_r1 },
-                             std::pair{ powder_param::Radius2, &powder::AlbedoRow::d_r2 },
-                             std::pair{ powder_param::Fraction2, &powder::AlbedoRow::d_f2 },
-                             std::pair{ powder_param::AgglomerateRadius,
-                                        &powder::AlbedoRow::d_ra },
-                             std::pair{ powder_param::AgglomerateFill,
-                                        &powder::AlbedoRow::d_fill } })
-            if (in_use(p))
-                params.emplace_back(&(this->*member(p)), d);
-        bool tangents = false;
-        if constexpr (dr::is_diff_v<Float>)
-            for (auto &gp : params)
-                tangents |= dr::grad_enabled(*gp.first);
-        if (!tangents)
-            params.clear();
-        m_mie = Tables::mie_tables(grains(), m_table_wavelengths, m_index, params);
-    }
-
-    /// Spatially varying grains: relative accuracy of the tabulated albedo (checked at
-    /// every interval's midpoint) and the largest table (wavelengths x nodes)
-    static constexpr double GrainTableTolerance = 2e-4;
-    static constexpr size_t GrainTableRecords = 200000;
-
-    /// Whether a grain property that sets the albedo is a texture
-    bool grain_textured() const {
-        return !m_albedo &&
-               (agglomerate() ? textured(powder_param::AgglomerateRadius) ||
-                                    textured(powder_param::AgglomerateFill)
-                              : textured(powder_param::Radius) ||
-                                    (m_two_populations && (textured(powder_param::Radius2) ||
-                                                           textured(powder_param::Fraction2))));
-    }
-
-    /// The grain parameter the texture table runs over (its texture sets the lanes): the
-    /// first population's size (powder_registry.h), or the fill of agglomerates
-    powder_param::Id table_param() const {
-        if (agglomerate() && textured(powder_param::AgglomerateFill))
-            return powder_param::AgglomerateFill;
-        return powder_param::GrainRules[(size_t) m_grain_model].size;
-    }
-
-    /// Smallest and largest value of a grain parameter (a radius in um, or the fill)
-    std::pair<double, double> value_range(powder_param::Id p) const {
-        if (textured(p)) {
-            TextureValues<Float, Spectrum> v = texture_values(p);
-            if (!v.found)
-                Throw("powder: the texture of property \"%s\" exposes no values, so the "
-                      "values to tabulate are unknown; use a bitmap or a constant texture",
-                      powder_param::Table[p].name);
-            return { v.lo, v.hi };
-        }
-        double r = value_of(this->*member(p));
-        return { r, r };
-    }
-
-    /**
-     * Spatially varying grains (a radius, radius2, fraction2 or agglomerate_radius
-     * texture): tabulate Q_ext and Q_sca over ln r (powder::efficiency_table) for the
-     * radii the textures hold, widened by a factor 1.25 each way so that edits of the
-     * texture usually stay inside (outside, the table is rebuilt); with an
-     * agglomerate_fill texture, over the fill (widened by 0.05 each way inside (0, 1])
-     * at the float agglomerate_radius. The table is rebuilt when the agglomerate
-     * property it holds at one value changes. eval interpolates per lane and mixes the
-     * populations (grain_texture_albedo). Differentiable through the interpolation.
-     */
-    void update_grain_texture_table() {
-        bool fill = table_param() == powder_param::AgglomerateFill;
-        if (fill && textured(powder_param::AgglomerateRadius))
-            Throw("powder: properties \"agglomerate_fill\" and \"agglomerate_radius\" "
-                  "are both textures; the albedo table of spatially varying agglomerates "
-                  "runs over one of them: give the other as a float");
-        // the table holds the other agglomerate property at one value: its gradient
-        // would be lost
-        powder_param::Id held = fill ? powder_param::AgglomerateRadius
-                                     : powder_param::AgglomerateFill;
-        if constexpr (dr::is_diff_v<Float>)
-            if (agglomerate() && dr::grad_enabled(this->*member(held)))
-                Throw("powder: property \"%s\" is not differentiable while \"%s\" is a "
-                      "texture (the albedo table runs over the texture's values at one "
-                      "%s)", powder_param::Table[held].name,
-                      powder_param::Table[table_param()].name, powder_param::Table[held].name);
-        double held_value = agglomerate() ? value_of(this->*member(held)) : 0.0;
-        auto [lo, hi] = value_range(table_param());
-        if (m_two_populations && !agglomerate()) {
-            auto [lo2, hi2] = value_range(powder_param::Radius2);
-            lo = std::min(lo, lo2);
-            hi = std::max(hi, hi2);
-        }
-        if (m_grain.table.nodes > 0 && lo >= m_grain_table_lo && hi <= m_grain_table_hi &&
-            held_value == m_grain_table_held)
-            return; // the current table covers the values
-        powder::Grains g{ 1.0, 1.0, 0.0, false, m_grain_model, 1.0, 0.5, m_mixing };
-        double lo_t, hi_t;
-        if (fill) {
-            // fills in (0, 1]: widened by 0.05 each way where they can be (a single
-            // fill of 1 gets the interval [0.95, 1])
-            lo_t = std::max(lo - 0.05, 0.5 * lo);
-            hi_t = std::min(hi + 0.05, 1.0);
-            g.agglomerate_radius = value_of(m_agglomerate_radius);
-        } else {
-            lo_t = lo / 1.25;
-            hi_t = hi * 1.25;
-            if (m_grain_model != powder::GrainModel::Slab) {
-                // keep the widened range inside the size parameters Mie accepts
-                auto [wl_lo, wl_hi] = std::minmax_element(m_table_wavelengths.begin(),
-                                                          m_table_wavelengths.end());
-                lo_t = std::max(lo_t, std::min(lo, 1e-3 * *wl_hi * 1e-3 / (2.0 * M_PI)));
-                hi_t = std::min(hi_t, std::max(hi, 200.0 * *wl_lo * 1e-3 / (2.0 * M_PI)));
-            }
-            hi_t = std::max(hi_t, lo_t * 1.001);
-            g.agglomerate_fill = value_of(m_agglomerate_fill);
-        }
-        build_grain_texture_table(g, lo, hi, lo_t, hi_t,
-                                  fill ? powder::TableAxis::Fill : powder::TableAxis::LogRadius);
-        m_grain_table_held = held_value;
-    }
-
-    /// Build the grain texture table over [lo_t, hi_t] of its variable (covering the
-    /// texture values [lo, hi]) and upload its records
-    void build_grain_texture_table(const powder::Grains &grains, double lo, double hi,
-                                   double lo_t, double hi_t, powder::TableAxis axis) {
-        bool fill = axis == powder::TableAxis::Fill;
-        double error = 0.0;
-        m_grain = Tables::grain_texture(powder::efficiency_table(
-            grains, lo_t, hi_t, m_table_wavelengths, m_index,
-            powder_param::Table[table_param()].name, GrainTableTolerance, GrainTableRecords,
-            error, DrJitParallelFor(), axis));
-        if (error > GrainTableTolerance)
-            Log(Warn, "powder: the albedo table of %s %g-%g%s is accurate to %.2g "
-                      "(relative, at the midpoints of its %zu nodes), not %g: the values "
-                      "span too many Mie resonances for %zu records; narrow the texture's "
-                      "range", fill ? "fills" : "radii", lo_t, hi_t, fill ? "" : " um",
-                error, m_grain.table.nodes, GrainTableTolerance, GrainTableRecords);
-        m_grain_table_lo = lo_t;
-        m_grain_table_hi = hi_t;
-        // a mean albedo for the sampling weights only: at the middle of the range
-        double r_mid = fill ? 0.5 * (lo + hi) : std::sqrt(lo * hi), rho = 0.0;
-        for (size_t i = 0; i < m_table_wavelengths.size(); ++i) {
-            auto [qe, qs] = powder::efficiency_at(m_grain.table, i, r_mid);
-            rho += qs / qe;
-        }
-        m_grain_rho_mean = rho / (double) m_table_wavelengths.size();
-        // the constant-radius tables are not used; keep them valid for packing
-        FloatStorage zeros = dr::zeros<FloatStorage>(m_table_wavelengths.size());
-        m_mie = { zeros, zeros, zeros, zeros, zeros };
-    }
-
-    /// The albedo of spatially varying grains per lane (docs/model.md; slab: Q_ext = 1,
-    /// Q_sca = rho)
-    UnpolarizedSpectrum grain_texture_albedo(const SurfaceInteraction3f &si,
-                                             Mask active) const {
-        Float r1 = at(table_param(), si, active);
-        if (!m_two_populations)
-            return Tables::grain_albedo(m_grain, r1, nullptr, nullptr, si, active);
-        Float r2 = at(powder_param::Radius2, si, active),
-              f2 = at(powder_param::Fraction2, si, active);
-        return Tables::grain_albedo(m_grain, r1, &r2, &f2, si, active);
-    }
-
     // ---------------------------------------------------- volume constants
-
-    /// An `albedo` that is one number for every wavelength and surface point (a
-    /// `uniform` spectrum; in spectral variants the others depend on the wavelength)
-    bool uniform_spectrum_albedo() const {
-        return m_albedo && !m_albedo->is_spatially_varying() &&
-               m_albedo->class_name() == "UniformSpectrum";
-    }
 
     /// Spectral variants, an albedo that is one number and tau_o from the Fresnel table:
     /// whether the layer is optically thick at every wavelength (powder_volume.h, ThickLimit)
@@ -1379,39 +883,7 @@ private:
 
     // -------------------------------------------------------------- state
 
-    // properties (read_properties)
-    ref<Texture> m_albedo;                          ///< null: albedo from the grains
-    Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
-    Float m_radius, m_radius2, m_fraction2, m_agglomerate_radius, m_agglomerate_fill;
-    ref<Texture> m_textures[powder_param::Count]; ///< texture-valued float parameters
-    powder::GrainModel m_grain_model = powder::GrainModel::Sphere;
-    powder::Mixing m_mixing = powder::Mixing::Bruggeman;
-    bool m_tau_given = false, m_two_populations = false;
-    SpecularModel m_specular;
-    bool m_surface_fresnel = false, m_cosine_only = false;
-    bool m_conserving = false;      ///< energy = "conserving"
-    Lobes m_lobes;
-    ScalarFloat m_wavelength;
-    ScalarFloat m_rgb_wavelengths[3];
     uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
-
-    // grain tables (powder_tables.h), at the table wavelengths
-    powder::OpticalTable m_optics;
-    std::vector<double> m_table_wavelengths;       ///< nm
-    std::vector<std::complex<double>> m_index;     ///< n + i k at those wavelengths
-    typename Tables::MieTables m_mie;
-    FloatStorage m_tau_table;
-    bool m_tau_table_constant = false;     ///< every entry of m_tau_table is the same
-    FloatStorage m_packed;                 ///< spectral: records for lookup_grains
-    /// RGB and mono: the entries of the albedo and tau_o tables, one per channel
-    UnpolarizedSpectrum m_rho_channels = 0.f, m_tau_channels = 0.f;
-    typename Tables::FresnelIndex m_fresnel; ///< surface_fresnel
-    /// spatially varying grains: the efficiency table (grain_texture_albedo), the
-    /// values it covers and the agglomerate property it holds
-    typename Tables::GrainTexture m_grain;
-    double m_grain_table_lo = 0.0, m_grain_table_hi = 0.0, m_grain_table_held = 0.0;
-    double m_grain_rho_mean = 0.5;
-
     // what eval reads (parameters_changed)
     bool m_finite_thickness = false;
     UnpolarizedSpectrum m_k0_kappa = 0.f; ///< RGB and mono: k0 / kappa per channel

@@ -11,9 +11,6 @@
 #include <mitsuba/core/string.h>
 #include <mitsuba/render/texture.h>
 
-#include <drjit/tensor.h>
-
-#include <exception>
 #include <limits>
 #include <string>
 #include <tuple>
@@ -21,6 +18,8 @@
 
 #include "powder_optics.h"
 #include "powder_registry.h"
+#include "powder_tables.h"
+#include "powder_textures.h"
 
 namespace powder_param {
 
@@ -239,150 +238,280 @@ inline powder::OpticalTable load_optics(const Properties &props) {
 NAMESPACE_BEGIN(mitsuba)
 
 /**
- * The smallest and largest values a texture holds: every floating-point
- * parameter it and the objects it holds expose through traverse() (a bitmap's
- * texels, the values of constant and checkerboard textures). `found` is false
- * when it exposes none (e.g. mesh attributes), `nan` when a value is NaN. Used
- * to check the range of texture-valued parameters at load and after edits.
+ * The properties of a powder (read_properties) and what follows from them alone: which
+ * parameters are in use, their values at an interaction (a float or a texture), and the
+ * evaluation wavelengths. The base of the BSDF (powder.cpp), through PowderGrains.
  */
-template <typename Float, typename Spectrum>
-class TextureValues final : public TraversalCallback {
+template <typename Float, typename Spectrum> class PowderParams {
 public:
-    MI_IMPORT_CORE_TYPES()
-    using UnpolarizedSpectrum = unpolarized_spectrum_t<Spectrum>;
-
-    double lo = std::numeric_limits<double>::infinity(),
-           hi = -std::numeric_limits<double>::infinity();
-    bool found = false, nan = false;
-
-    /// The values of a texture (traverse() only reads here; Mitsuba declares it non-const)
-    template <typename Texture> static TextureValues of(const Texture *texture) {
-        TextureValues values;
-        const_cast<Texture *>(texture)->traverse(&values);
-        return values;
-    }
+    MI_IMPORT_TYPES(Texture)
+    enum class SpecularModel : uint32_t { HarveyShack = 0, Gaussian = 1 };
+    using Tables = PowderTables<Float, Spectrum>;
+    using Textures = PowderTextures<Float, Spectrum>;
+    using FloatStorage = typename Tables::FloatStorage;
+    using Lobes = powder_param::Lobes;
+    static constexpr int TableSize = Tables::TableSize;
+    static constexpr float TableMin = Tables::TableMin, TableStep = Tables::TableStep;
 
 protected:
-    void put_value(std::string_view, void *ptr, uint32_t,
-                   const std::type_info &type) override {
-        if (type == typeid(TensorXf)) {
-            add(((TensorXf *) ptr)->array());
-        } else if (type == typeid(Float)) {
-            add(*(Float *) ptr);
-        } else if (type == typeid(Color3f)) {
-            for (size_t c = 0; c < 3; ++c)
-                add((*(Color3f *) ptr)[c]);
-        } else if constexpr (!std::is_same_v<UnpolarizedSpectrum, Color3f>) {
-            if (type == typeid(UnpolarizedSpectrum))
-                for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
-                    add((*(UnpolarizedSpectrum *) ptr)[c]);
-        }
-    }
+    // ---------------------------------------------------------- properties
 
-    void put_object(std::string_view, Object *obj, uint32_t) override {
-        if (obj)
-            obj->traverse(this);
-    }
-
-private:
-    template <typename T> void add(const T &v) {
-        if constexpr (dr::is_jit_v<T>) {
-            if (dr::width(v) == 0)
-                return;
-            found = true;
-            T d = dr::detach(v);
-            nan |= (bool) dr::slice(dr::any(dr::isnan(d)), 0);
-            lo = std::min(lo, (double) dr::slice(dr::min(d), 0));
-            hi = std::max(hi, (double) dr::slice(dr::max(d), 0));
-        } else if constexpr (dr::is_dynamic_array_v<T>) {
-            for (size_t i = 0; i < v.size(); ++i)
-                add_one((double) v[i]);
-        } else {
-            add_one((double) v);
-        }
-    }
-
-    void add_one(double x) {
-        found = true;
-        nan |= std::isnan(x);
-        lo = std::min(lo, x);
-        hi = std::max(hi, x);
-    }
-};
-
-/// Checks of texture-valued properties
-template <typename Float, typename Spectrum> struct PowderTextures {
-    MI_IMPORT_TYPES(Texture)
-    using Values = TextureValues<Float, Spectrum>;
-
-    /**
-     * Check every value a parameter's texture holds against the parameter's range
-     * (a thickness texture must be finite); a texture that exposes no values is
-     * accepted with a warning
-     */
-    static void check(powder_param::Id p, const Texture *texture) {
-        const powder_param::Spec &spec = powder_param::Table[p];
-        Values values = Values::of(texture);
-        if (!values.found) {
-            Log(Warn, "powder: the texture of property \"%s\" exposes no values, so its "
-                      "range %s cannot be checked", spec.name, spec.range.str());
-            return;
-        }
-        powder_param::Range range = spec.range;
-        if (p == powder_param::Thickness)
-            range.hi_closed = false; // finite: an infinite layer is a float
-        if (values.nan || !range.contains(values.lo) || !range.contains(values.hi))
-            Throw("powder: property \"%s\" is a texture with values from %g to %g%s; valid "
-                  "range is %s", spec.name, values.lo, values.hi,
-                  values.nan ? " and NaN" : "", range.str());
-    }
-
-    /// A single-scattering albedo must lie in [0, 1] (the minimum is checked where the
-    /// texture is uniform and can be evaluated in this variant)
-    static void check_albedo(const Texture *albedo, int table_size, float table_min) {
-        ScalarFloat max_value;
-        try {
-            max_value = albedo->max();
-        } catch (const std::exception &) {
-            max_value = 1.f; // this texture type cannot report its maximum
-        }
-        if (!(max_value <= 1.f + 1e-5f))
-            Throw("powder: property \"albedo\" has a maximum of %g; a "
-                  "single-scattering albedo must lie in [0, 1]", (double) max_value);
-        if (albedo->is_spatially_varying())
-            return;
-        ScalarFloat min_value;
-        try {
-            min_value = minimum(albedo, table_size, table_min);
-        } catch (const std::exception &) {
-            return; // this texture type cannot be evaluated in this variant
-        }
-        if (!(min_value >= 0.f))
-            Throw("powder: property \"albedo\" has a minimum of %g; a "
-                  "single-scattering albedo must lie in [0, 1]", (double) min_value);
-    }
-
-    /// Smallest value of a spatially uniform texture (over the 1 nm grid of table_size
-    /// wavelengths from table_min in spectral variants), detached
-    static ScalarFloat minimum(const Texture *texture, int table_size, float table_min) {
-        ScalarFloat result = std::numeric_limits<ScalarFloat>::infinity();
-        int steps = is_spectral_v<Spectrum> ? (table_size + 3) / 4 : 1;
-        for (int i = 0; i < steps; ++i) {
-            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
-            if constexpr (is_spectral_v<Spectrum>)
-                for (size_t j = 0; j < 4; ++j)
-                    si.wavelengths[j] = dr::minimum(table_min + (4 * i + j),
-                                                    table_min + (table_size - 1));
-            UnpolarizedSpectrum v = dr::detach(texture->eval(si));
-            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
-                if constexpr (dr::is_jit_v<Float>)
-                    result = std::min(result, (ScalarFloat) dr::slice(v[j], 0));
-                else
-                    result = std::min(result, (ScalarFloat) v[j]);
+    /// Read and check the properties (powder_params.h, the tables of powder_registry.h)
+    void read_properties(const Properties &props) {
+        using namespace powder_param;
+        m_tau_given = props.has_property("tau_o");
+        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        std::tie(m_grain_model, m_mixing) = read_grain_model(props);
+        // The float parameters; a fittable one may be a texture (evaluated at si.uv)
+        for (size_t i = 0; i < Count; ++i) {
+            const Spec &spec = Table[i];
+            double value = spec.def;
+            if (props.has_property(spec.name)) {
+                auto type = props.type(spec.name);
+                if (spec.fittable && (type == Properties::Type::Object ||
+                                      type == Properties::Type::Reference ||
+                                      type == Properties::Type::ResolvedReference)) {
+                    m_textures[i] = props.get_texture<Texture>(spec.name);
+                    Textures::check((Id) i, m_textures[i].get());
+                } else {
+                    value = props.get<double>(spec.name);
+                    check_range(spec.name, value, spec.range);
+                }
             }
+            this->*member((Id) i) = Float((ScalarFloat) value);
         }
-        return result;
+        m_specular = (SpecularModel) read_choice<2>(props, "specular", SpecularValues);
+        m_surface_fresnel = read_choice<2>(props, "surface_fresnel", SurfaceFresnelValues) == 1;
+        if (m_surface_fresnel && m_tau_given && !props.has_property("eta") &&
+            !props.has_property("material"))
+            Throw("powder: property \"surface_fresnel\" = \"fresnel\" needs the grain "
+                  "material's index, which \"tau_o\" given alone does not fix: give \"eta\" "
+                  "and \"k\" (or \"material\") too, or surface_fresnel = \"none\"");
+        m_lobes = parse_lobes(props.get<std::string>("lobes", LobeList.def));
+        m_cosine_only = read_choice<2>(props, "sampling", SamplingValues) == 1;
+        m_conserving = read_choice<2>(props, "energy", EnergyValues) == 1;
+        if (m_conserving)
+            for (size_t i = 0; i < Count; ++i)
+                if (is_normalisation_param((Id) i) && textured((Id) i))
+                    Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
+                          "uniform \"%s\" (the normalisation is tabulated per wavelength and "
+                          "incidence), but it is a texture; use energy = \"paper\" or a "
+                          "float", Table[i].name);
+        double wavelength = props.get<double>("wavelength", WavelengthNumber.def);
+        check_range(WavelengthNumber.name, wavelength, WavelengthNumber.range);
+        m_wavelength = (ScalarFloat) wavelength;
+        std::array<double, 3> rgb = read_rgb_wavelengths(props);
+        for (size_t i = 0; i < 3; ++i)
+            m_rgb_wavelengths[i] = (ScalarFloat) rgb[i];
+        m_optics = load_optics(props);
+        if (props.has_property("albedo")) {
+            m_albedo = props.get_texture<Texture>("albedo");
+            Textures::check_albedo(m_albedo.get(), TableSize, TableMin);
+            if (m_conserving && m_albedo->is_spatially_varying())
+                Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
+                      "uniform albedo (the normalisation is tabulated per wavelength and "
+                      "incidence), but property \"albedo\" is a spatially varying texture; "
+                      "use energy = \"paper\" or a uniform albedo");
+        }
     }
+
+    /// Check every parameter in use (a value per lane: each lane), as after an edit
+    void check_parameters() const {
+        for (size_t i = 0; i < powder_param::Count; ++i) {
+            powder_param::Id p = (powder_param::Id) i;
+            if (!in_use(p))
+                continue;
+            if (m_textures[i]) {
+                Textures::check(p, m_textures[i].get());
+                continue;
+            }
+            const Float &v = this->*member(p);
+            powder_param::check_lanes(p, v);
+            // the grain tables are built from one value (one per lane would be ignored),
+            // and so is the normalisation of energy = "conserving"
+            if (dr::width(v) > 1 && m_conserving && powder_param::is_normalisation_param(p))
+                Throw("powder: property \"%s\" holds %zu values (one per lane); with energy "
+                      "= \"conserving\" it takes one value (the normalisation is tabulated "
+                      "for one); use energy = \"paper\" for one value per lane",
+                      powder_param::Table[i].name, dr::width(v));
+            if (dr::width(v) > 1 && powder_param::is_grain_param(p))
+                Throw("powder: property \"%s\" holds %zu values (one per lane); a grain "
+                      "property takes one value, or a texture for one per surface point",
+                      powder_param::Table[i].name, dr::width(v));
+        }
+    }
+
+    /// Largest kappa / k0 inside the regime of enhanced back-scattering theory
+    /// (narrow coherent cone), above which the constructor warns
+    static constexpr double RegimeLimit = 0.25;
+
+    /// Warn when kappa / k0 = kappa lambda / (2 pi) exceeds RegimeLimit at a wavelength
+    /// the powder is evaluated at (k0 is smallest at the longest one): the rgb_wavelengths,
+    /// `wavelength` (mono) or the spectral table's range
+    void warn_outside_regime() const {
+        double lam_nm;
+        if constexpr (is_spectral_v<Spectrum>)
+            lam_nm = TableMin + (TableSize - 1) * TableStep;
+        else if constexpr (is_rgb_v<Spectrum>)
+            lam_nm = std::max({ (double) m_rgb_wavelengths[0], (double) m_rgb_wavelengths[1],
+                                (double) m_rgb_wavelengths[2] });
+        else
+            lam_nm = m_wavelength;
+        double kappa = textured(powder_param::Extinction)
+                           ? texture_values(powder_param::Extinction).hi : value_of(m_kappa),
+               ratio = kappa * lam_nm * 1e-3 / (2.0 * M_PI);
+        if (ratio > RegimeLimit)
+            Log(Warn,
+                "powder: property \"extinction\" = %g 1/um (its largest value) gives "
+                "kappa/k0 = %.4g at %g nm, "
+                "above the threshold 0.25: outside the narrow-cone regime of enhanced "
+                "back-scattering theory (kappa/k0 << 1), where the coherent term is not "
+                "physical (with energy=\"paper\" a white powder reflects more than it "
+                "receives; see docs/powder.md, \"Energy\")",
+                kappa, ratio, lam_nm);
+    }
+
+    /// The value of a parameter that holds one value (lane 0 of a JIT array)
+    template <typename T> static double value_of(const T &v) { return (double) dr::slice(v); }
+
+    /// The member holding a float parameter of the table powder_param::Table
+    static Float PowderParams::*member(powder_param::Id p) {
+        static constexpr Float PowderParams::*members[powder_param::Count] = {
+            &PowderParams::m_av, &PowderParams::m_g, &PowderParams::m_kappa, &PowderParams::m_tau_o,
+            &PowderParams::m_thickness, &PowderParams::m_as, &PowderParams::m_lc, &PowderParams::m_sigma,
+            &PowderParams::m_radius, &PowderParams::m_radius2, &PowderParams::m_fraction2,
+            &PowderParams::m_agglomerate_radius, &PowderParams::m_agglomerate_fill
+        };
+        return members[p];
+    }
+
+    /// Whether a parameter enters the model as configured (range-checked, traversed)
+    bool in_use(powder_param::Id p) const {
+        switch (p) {
+            case powder_param::TauO: return m_tau_given;
+            case powder_param::Radius: return !m_albedo && !agglomerate();
+            case powder_param::Radius2:
+            case powder_param::Fraction2: return !m_albedo && m_two_populations;
+            case powder_param::AgglomerateRadius:
+            case powder_param::AgglomerateFill: return !m_albedo && agglomerate();
+            case powder_param::CorrelationLength:
+                return m_specular == SpecularModel::HarveyShack;
+            case powder_param::Sigma: return m_specular == SpecularModel::Gaussian;
+            default: return true;
+        }
+    }
+
+    bool agglomerate() const { return m_grain_model == powder::GrainModel::Agglomerate; }
+
+    /// Whether a float parameter is given as a texture
+    bool textured(powder_param::Id p) const { return (bool) m_textures[p]; }
+
+    /// A float parameter at an interaction: its texture at si.uv, or its value
+    Float at(powder_param::Id p, const SurfaceInteraction3f &si, Mask active) const {
+        if (m_textures[p])
+            return m_textures[p]->eval_1(si, active);
+        DRJIT_MARK_USED(si);
+        DRJIT_MARK_USED(active);
+        return this->*member(p);
+    }
+
+    TextureValues<Float, Spectrum> texture_values(powder_param::Id p) const {
+        return TextureValues<Float, Spectrum>::of(m_textures[p].get());
+    }
+
+    // ------------------------------------------------------- wavelengths
+
+    /// Evaluation wavelengths in micrometres, one per channel
+    UnpolarizedSpectrum wavelengths_um(const SurfaceInteraction3f &si) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            return si.wavelengths * 1e-3f;
+        } else if constexpr (is_rgb_v<Spectrum>) {
+            return UnpolarizedSpectrum(m_rgb_wavelengths[0] * 1e-3f,
+                                       m_rgb_wavelengths[1] * 1e-3f,
+                                       m_rgb_wavelengths[2] * 1e-3f);
+        } else {
+            DRJIT_MARK_USED(si);
+            return UnpolarizedSpectrum(m_wavelength * 1e-3f);
+        }
+    }
+
+    /// 1 / wavelength in 1/micrometre, one per channel (1e3 / lambda_nm: one division
+    /// per channel in spectral variants, constants otherwise)
+    UnpolarizedSpectrum inverse_wavelengths_um(const SurfaceInteraction3f &si) const {
+        if constexpr (is_spectral_v<Spectrum>)
+            return 1e3f / si.wavelengths;
+        else
+            return dr::rcp(wavelengths_um(si));
+    }
+
+    /// Mean evaluation wavelength in micrometres (sets the sampling lobe widths)
+    Float mean_wavelength(const SurfaceInteraction3f &si) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            return dr::mean(si.wavelengths) * 1e-3f;
+        } else if constexpr (is_rgb_v<Spectrum>) {
+            DRJIT_MARK_USED(si);
+            return (m_rgb_wavelengths[0] + m_rgb_wavelengths[1] + m_rgb_wavelengths[2]) *
+                   (1e-3f / 3.f);
+        } else {
+            DRJIT_MARK_USED(si);
+            return m_wavelength * 1e-3f;
+        }
+    }
+
+    /// Whether a grain property that sets the albedo is a texture
+    bool grain_textured() const {
+        return !m_albedo &&
+               (agglomerate() ? textured(powder_param::AgglomerateRadius) ||
+                                    textured(powder_param::AgglomerateFill)
+                              : textured(powder_param::Radius) ||
+                                    (m_two_populations && (textured(powder_param::Radius2) ||
+                                                           textured(powder_param::Fraction2))));
+    }
+
+    /// The grain parameter the texture table runs over (its texture sets the lanes): the
+    /// first population's size (powder_registry.h), or the fill of agglomerates
+    powder_param::Id table_param() const {
+        if (agglomerate() && textured(powder_param::AgglomerateFill))
+            return powder_param::AgglomerateFill;
+        return powder_param::GrainRules[(size_t) m_grain_model].size;
+    }
+
+    /// Smallest and largest value of a grain parameter (a radius in um, or the fill)
+    std::pair<double, double> value_range(powder_param::Id p) const {
+        if (textured(p)) {
+            TextureValues<Float, Spectrum> v = texture_values(p);
+            if (!v.found)
+                Throw("powder: the texture of property \"%s\" exposes no values, so the "
+                      "values to tabulate are unknown; use a bitmap or a constant texture",
+                      powder_param::Table[p].name);
+            return { v.lo, v.hi };
+        }
+        double r = value_of(this->*member(p));
+        return { r, r };
+    }
+
+    /// An `albedo` that is one number for every wavelength and surface point (a
+    /// `uniform` spectrum; in spectral variants the others depend on the wavelength)
+    bool uniform_spectrum_albedo() const {
+        return m_albedo && !m_albedo->is_spatially_varying() &&
+               m_albedo->class_name() == "UniformSpectrum";
+    }
+
+    // properties (read_properties)
+    ref<Texture> m_albedo;                          ///< null: albedo from the grains
+    Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
+    Float m_radius, m_radius2, m_fraction2, m_agglomerate_radius, m_agglomerate_fill;
+    ref<Texture> m_textures[powder_param::Count]; ///< texture-valued float parameters
+    powder::GrainModel m_grain_model = powder::GrainModel::Sphere;
+    powder::Mixing m_mixing = powder::Mixing::Bruggeman;
+    bool m_tau_given = false, m_two_populations = false;
+    SpecularModel m_specular;
+    bool m_surface_fresnel = false, m_cosine_only = false;
+    bool m_conserving = false;      ///< energy = "conserving"
+    Lobes m_lobes;
+    ScalarFloat m_wavelength;
+    ScalarFloat m_rgb_wavelengths[3];
+    powder::OpticalTable m_optics; ///< the grain material's index
 };
 
 NAMESPACE_END(mitsuba)
