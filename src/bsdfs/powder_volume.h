@@ -4,7 +4,8 @@
  * The volume constants of the model: the values of L2 and C that depend on the grains
  * (rho, g, tau_o) and not on the directions, and how eval obtains them (VolumePath):
  * computed per lane, once per parameter change, or read from a 1 nm table in spectral
- * variants. The path is chosen in Powder::parameters_changed from the thresholds here.
+ * variants. Powder::update_volume (after every parameter change) chooses the path by the
+ * threshold here, and the form of C by those beside C (powder_terms.h).
  */
 
 #include "powder_tables.h"
