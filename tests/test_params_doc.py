@@ -13,7 +13,8 @@ import pytest
 from helpers import use_variant
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE = (ROOT / "src" / "bsdfs" / "powder.cpp").read_text()
+# the plugin's source: powder.cpp (the doc comment), its headers (the parameter table, parsing)
+SOURCE = "\n".join(p.read_text() for p in sorted((ROOT / "src" / "bsdfs").glob("powder*")))
 DOCS = (ROOT / "docs" / "powder.md").read_text()
 
 _NUMBER = {"0.0": "0", "1.0": "1", "-1.0": "-1", "Inf": "inf", "0.5 * M_PI": "pi/2"}

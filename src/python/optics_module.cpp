@@ -8,9 +8,14 @@
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
 #include <nanobind/stl/optional.h>
+#include <nanobind/stl/map.h>
+#include <nanobind/stl/variant.h>
 #include <nanobind/stl/vector.h>
 
+#include <cmath>
+#include <map>
 #include <optional>
+#include <variant>
 
 #include "../bsdfs/powder_optics.h"
 
@@ -19,22 +24,20 @@ namespace nb = nanobind;
 namespace {
 
 powder::Mixing parse_mixing(const std::string &mixing) {
-    if (mixing == "bruggeman")
-        return powder::Mixing::Bruggeman;
-    if (mixing == "maxwell_garnett")
-        return powder::Mixing::MaxwellGarnett;
-    powder::fail("mixing = \"", mixing, "\" is not valid; valid values are \"bruggeman\" and "
-                 "\"maxwell_garnett\"");
+    return (powder::Mixing) powder_param::choice_index("mixing", mixing);
+}
+
+/// The plugin's range check of a numeric property (powder_registry.h)
+void check(const char *name, double v) {
+    powder_param::Id p = powder_param::find(name);
+    const powder_param::Range &r = powder_param::Table[p].range;
+    if (!r.contains(v))
+        powder::fail(name, " = ", v, " is out of range; valid range is ", r.str());
 }
 
 void check_positive(const char *name, double v) {
     if (!(v > 0.0) || !std::isfinite(v))
         powder::fail(name, " = ", v, " is out of range; valid range is (0, inf)");
-}
-
-void check_fill(double f) {
-    if (!(f > 0.0 && f <= 1.0))
-        powder::fail("agglomerate_fill = ", f, " is out of range; valid range is (0, 1]");
 }
 
 /// rho per wavelength and its derivatives [d radius, d radius2, d fraction2,
@@ -46,43 +49,35 @@ albedo_table(const std::string &grains, const std::vector<double> &wavelengths_n
              std::optional<double> agglomerate_radius, double agglomerate_fill,
              const std::string &mixing, bool derivatives) {
     powder::Grains g{ radius };
-    if (grains == "sphere")
-        g.model = powder::GrainModel::Sphere;
-    else if (grains == "agglomerate")
-        g.model = powder::GrainModel::Agglomerate;
-    else if (grains == "slab")
-        g.model = powder::GrainModel::Slab;
-    else
-        powder::fail("grains = \"", grains, "\" is not valid; valid values are \"sphere\", "
-                     "\"agglomerate\" and \"slab\"");
+    size_t model = powder_param::choice_index("grains", grains);
+    g.model = (powder::GrainModel) model;
     if (wavelengths_nm.size() != index.size())
         powder::fail("wavelengths_nm and index differ in length (", wavelengths_nm.size(),
                      " and ", index.size(), ")");
-    check_positive("radius", radius);
-    if (radius2.has_value() != fraction2.has_value())
-        powder::fail("a second grain population needs both radius2 and fraction2");
+    // the plugin's rules of the grain model (agglomerate_fill and mixing have defaults here)
+    powder_param::check_grain_properties(
+        model,
+        [&](const char *name) {
+            std::string n = name;
+            return n == "radius" || (n == "radius2" && radius2) ||
+                   (n == "fraction2" && fraction2) ||
+                   (n == "agglomerate_radius" && agglomerate_radius);
+        },
+        false);
+    check("radius", radius);
     if (radius2) {
-        if (g.model == powder::GrainModel::Agglomerate)
-            powder::fail("radius2 cannot be used with grains = \"agglomerate\" (one "
-                         "population)");
-        check_positive("radius2", *radius2);
-        if (!(*fraction2 >= 0.0 && *fraction2 <= 1.0))
-            powder::fail("fraction2 = ", *fraction2, " is out of range; valid range is [0, 1]");
+        check("radius2", *radius2);
+        check("fraction2", *fraction2);
         g.two = true;
         g.r2 = *radius2;
         g.f2 = *fraction2;
     }
     if (g.model == powder::GrainModel::Agglomerate) {
-        if (!agglomerate_radius)
-            powder::fail("grains = \"agglomerate\" needs agglomerate_radius (um); valid range "
-                         "is (0, inf)");
-        check_positive("agglomerate_radius", *agglomerate_radius);
-        check_fill(agglomerate_fill);
+        check("agglomerate_radius", *agglomerate_radius);
+        check("agglomerate_fill", agglomerate_fill);
         g.agglomerate_radius = *agglomerate_radius;
         g.agglomerate_fill = agglomerate_fill;
         g.mixing = parse_mixing(mixing);
-    } else if (agglomerate_radius) {
-        powder::fail("agglomerate_radius is used only with grains = \"agglomerate\"");
     }
     for (double wl : wavelengths_nm)
         check_positive("wavelength (nm)", wl);
@@ -97,11 +92,81 @@ albedo_table(const std::string &grains, const std::vector<double> &wavelengths_n
     return { rho, d };
 }
 
-} // namespace
+std::vector<std::string> materials() {
+    std::vector<std::string> out;
+    for (const powder_param::Material &m : powder_param::Materials)
+        out.push_back(m.name);
+    return out;
+}
 
-NB_MODULE(_optics, m) {
-    m.doc() = "Grain optics of the powder BSDF (double precision, same code as the plugin)";
+std::map<std::string, std::vector<std::string>> material_files() {
+    std::map<std::string, std::vector<std::string>> out;
+    for (const powder_param::Material &m : powder_param::Materials)
+        for (const char *f : m.files)
+            if (f)
+                out[m.name].push_back(f);
+    return out;
+}
 
+std::map<std::string, std::variant<double, std::string>> property_defaults() {
+    using namespace powder_param;
+    std::map<std::string, std::variant<double, std::string>> out;
+    for (size_t i = 0; i < Count; ++i)
+        if (has_default((Id) i))
+            out[Table[i].name] = Table[i].def;
+    for (const Number &n : Numbers)
+        if (!std::isnan(n.def))
+            out[n.name] = n.def;
+    for (const Choice &c : ChoiceTable)
+        out[c.name] = std::string(c.values[0]);
+    for (const Text &t : Texts)
+        out[t.name] = std::string(t.def);
+    return out;
+}
+
+/// f(range) of every numeric property
+template <typename F> auto per_range(F f) {
+    std::map<std::string, decltype(f(powder_param::Table[0].range))> out;
+    for (const powder_param::Spec &s : powder_param::Table)
+        out[s.name] = f(s.range);
+    for (const powder_param::Number &n : powder_param::Numbers)
+        out[n.name] = f(n.range);
+    return out;
+}
+
+std::map<std::string, std::pair<double, double>> property_ranges() {
+    return per_range([](const powder_param::Range &r) { return std::pair{ r.lo, r.hi }; });
+}
+
+std::map<std::string, std::pair<bool, bool>> property_range_ends() {
+    return per_range(
+        [](const powder_param::Range &r) { return std::pair{ r.lo_closed, r.hi_closed }; });
+}
+
+nb::dict grain_models() {
+    using namespace powder_param;
+    nb::dict out;
+    const Choice &grains = ChoiceTable[Grains];
+    for (size_t m = 0; m < grains.count; ++m) {
+        const GrainRule &rule = GrainRules[m];
+        nb::list allowed, required;
+        for (const char *a : rule.allowed)
+            if (a)
+                allowed.append(a);
+        if (rule.required)
+            required.append(rule.required);
+        nb::dict d;
+        d["size"] = Table[rule.size].name;
+        d["allowed"] = allowed;
+        d["required"] = required;
+        d["two_populations"] = rule.two_populations;
+        out[grains.values[m]] = d;
+    }
+    return out;
+}
+
+/// The grain optics of powder_optics.h
+void def_optics(nb::module_ &m) {
     m.def("mie_efficiencies",
           [](std::complex<double> index, double x) {
               if (!(x > 0.0))
@@ -124,7 +189,7 @@ NB_MODULE(_optics, m) {
 
     m.def("effective_index",
           [](std::complex<double> index, double fill, const std::string &mixing) {
-              check_fill(fill);
+              check("agglomerate_fill", fill);
               return powder::effective_index(index, fill, parse_mixing(mixing));
           },
           nb::arg("index"), nb::arg("fill"), nb::arg("mixing") = "bruggeman",
@@ -143,7 +208,10 @@ NB_MODULE(_optics, m) {
           nb::arg("index"), nb::arg("diameter_um"), nb::arg("wavelength_um"),
           "Hapke's equivalent-slab albedo of grains of size D (um) and index n + ik (n > 1) "
           "at a wavelength in um.");
+}
 
+/// The albedo table and the optical constants
+void def_tables(nb::module_ &m) {
     m.def("albedo_table", &albedo_table, nb::arg("grains"), nb::arg("wavelengths_nm"),
           nb::arg("index"), nb::arg("radius"), nb::arg("radius2") = nb::none(),
           nb::arg("fraction2") = nb::none(), nb::arg("agglomerate_radius") = nb::none(),
@@ -172,4 +240,33 @@ NB_MODULE(_optics, m) {
           },
           nb::arg("path_o"), nb::arg("path_e"),
           "Orientation average (2 o + e) / 3 of the ordinary and extraordinary tables.");
+}
+
+/// The plugin's properties (powder_registry.h): what Python reads instead of its own copy
+void def_registry(nb::module_ &m) {
+    m.def("materials", &materials, "Names of the built-in grain materials (property \"material\").");
+    m.def("material_files", &material_files,
+          "Optical-constant files of each built-in material, relative to the package's folder "
+          "(two files: the ordinary and extraordinary rays, averaged (2 o + e) / 3).");
+    m.def("property_defaults", &property_defaults,
+          "Every property of the plugin that has a default, with it (float or str).");
+    m.def("property_ranges", &property_ranges,
+          "Valid (lo, hi) of the numeric properties as the plugin checks them; "
+          "property_range_ends gives which ends are closed.");
+    m.def("property_range_ends", &property_range_ends,
+          "Whether the (lo, hi) ends of each range of property_ranges are closed.");
+    m.def("grain_models", &grain_models,
+          "Per grain model (\"sphere\", \"agglomerate\", \"slab\"): \"size\" (the property "
+          "of the first population's size), \"allowed\" and \"required\" (grain properties), "
+          "\"two_populations\" (whether radius2 and fraction2 are allowed).");
+}
+
+} // namespace
+
+NB_MODULE(_optics, m) {
+    m.doc() = "Grain optics of the powder BSDF (double precision, same code as the plugin), "
+              "and the plugin's property registry";
+    def_optics(m);
+    def_tables(m);
+    def_registry(m);
 }

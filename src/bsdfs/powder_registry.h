@@ -1,0 +1,315 @@
+#pragma once
+
+/*
+ * The properties of the `powder` plugin in one place: the float parameters (default,
+ * range, differentiable), the other numeric properties, the string properties and their
+ * values, the built-in materials and the grain models with the properties each allows and
+ * requires (docs/model.md, "Grain models"). The plugin's parsing and validation read these
+ * tables, and so does the Python module mitsuba_powder._optics, which exposes them to the
+ * Python package; so this header has no Mitsuba or Dr.Jit dependency.
+ */
+
+#include <array>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+
+namespace powder {
+
+/// Raise std::runtime_error with the streamed arguments as message
+template <typename... Args> [[noreturn]] void fail(const Args &...args) {
+    std::ostringstream oss;
+    (oss << ... << args);
+    throw std::runtime_error(oss.str());
+}
+
+} // namespace powder
+
+namespace powder_param {
+
+constexpr double Inf = std::numeric_limits<double>::infinity();
+
+/// Valid values of a parameter: an interval with open or closed ends
+struct Range {
+    double lo, hi;
+    bool lo_closed, hi_closed;
+
+    /// Closed ends are compared in single precision: the plugin stores floats,
+    /// and so may the caller (e.g. sigma = pi/2 rounded up)
+    bool contains(double v) const {
+        float vf = (float) v;
+        return !std::isnan(v) && (lo_closed ? vf >= (float) lo : v > lo) &&
+               (hi_closed ? vf <= (float) hi : v < hi);
+    }
+
+    /// The interval as written in the errors and docs, e.g. "(0, inf)"
+    std::string str() const {
+        std::ostringstream oss;
+        oss << (lo_closed ? "[" : "(") << lo << ", " << hi << (hi_closed ? "]" : ")");
+        return oss.str();
+    }
+};
+
+/// The message for a value outside its range ("" inside it)
+inline std::string range_error(const char *name, double value, const Range &r) {
+    if (r.contains(value))
+        return "";
+    std::ostringstream oss;
+    oss << "property \"" << name << "\" = " << value << " is out of range; valid range is "
+        << r.str();
+    return oss.str();
+}
+
+/**
+ * The float parameters of the model (docs/model.md, "Parameters"). One row each drives
+ * reading the property (default, range), the range check after an edit through
+ * mi.traverse (parameters_changed), the traversal key and whether it is
+ * differentiable; tests/test_params_doc.py checks that the doc comment above the
+ * class and docs/powder.md list the same names, defaults and ranges.
+ */
+struct Spec {
+    const char *name;
+    const char *unit;     ///< "-" when dimensionless
+    double def;           ///< value held when the property is absent
+    const char *def_doc;  ///< the default as documented
+    Range range;
+    bool fittable;        ///< differentiable and exposed by mi.traverse
+};
+
+enum Id : size_t {
+    AmplitudeVolume, G, Extinction, TauO, Thickness, AmplitudeSurface, CorrelationLength,
+    Sigma, Radius, Radius2, Fraction2, AgglomerateRadius, AgglomerateFill, Count
+};
+
+inline constexpr Spec Table[Count] = {
+    // name                 unit    default  default as documented
+    //     range {lo, hi, lo closed, hi closed}, fittable
+    { "amplitude_volume",   "-",    1.0,     "1.0",
+          { 0.0, Inf, true, false }, true },
+    { "g",                  "-",    0.0,     "0.0",
+          { -1.0, 1.0, false, false }, true },
+    { "extinction",         "1/um", 1.0,     "1.0",
+          { 0.0, Inf, false, false }, true },
+    { "tau_o",              "-",    2.0 / 3, "from Fresnel of Re(eta)",
+          { 0.0, Inf, true, false }, true },
+    { "thickness",          "um",   Inf,     "infinite",
+          { 0.0, Inf, true, true }, true },
+    { "amplitude_surface",  "um^2", 0.0,     "0.0",
+          { 0.0, Inf, true, false }, true },
+    { "correlation_length", "um",   1.0,     "1.0",
+          { 0.0, Inf, false, false }, true },
+    { "sigma",              "rad",  0.1,     "0.1",
+          { 0.0, 0.5 * M_PI, false, true }, true },
+    { "radius",             "um",   0.017,   "0.017",
+          { 0.0, Inf, false, false }, true },
+    { "radius2",            "um",   1.0,     "none (one population)",
+          { 0.0, Inf, false, false }, true },
+    { "fraction2",          "-",    0.0,     "none (one population)",
+          { 0.0, 1.0, true, true }, true },
+    { "agglomerate_radius", "um",   1.0,     "none (required with agglomerates)",
+          { 0.0, Inf, false, false }, true },
+    { "agglomerate_fill",   "-",    0.5,     "0.5",
+          { 0.0, 1.0, false, true }, true },
+};
+
+/// Whether a float parameter has a default: the others are computed (tau_o) or absent
+/// unless given (the second population, the agglomerate radius)
+constexpr bool has_default(Id p) {
+    return p != TauO && p != Radius2 && p != Fraction2 && p != AgglomerateRadius;
+}
+
+/// The float parameter of a name (Count if none)
+inline Id find(const char *name) {
+    for (size_t i = 0; i < Count; ++i)
+        if (std::strcmp(Table[i].name, name) == 0)
+            return (Id) i;
+    return Count;
+}
+
+/// Whether a parameter describes the grains (it sets the Mie / grain tables)
+constexpr bool is_grain_param(Id p) {
+    return p == Radius || p == Radius2 || p == Fraction2 || p == AgglomerateRadius ||
+           p == AgglomerateFill;
+}
+
+/// The parameters the normalisation of energy = "conserving" is tabulated from (one value
+/// each: no texture, no value per lane)
+constexpr bool is_normalisation_param(Id p) {
+    return p == AmplitudeVolume || p == G || p == Extinction || p == TauO || p == Thickness ||
+           is_grain_param(p);
+}
+
+/// The other numeric properties (not traversed): one value, or a spectrum (eta, k)
+struct Number {
+    const char *name;
+    double def; ///< NaN: no default
+    Range range;
+};
+
+inline constexpr Number Numbers[] = {
+    { "wavelength", 700.0, { 0.0, Inf, false, false } },
+    { "eta", std::numeric_limits<double>::quiet_NaN(), { 0.0, Inf, false, false } },
+    { "k", std::numeric_limits<double>::quiet_NaN(), { 0.0, Inf, true, false } },
+};
+inline constexpr const Number &WavelengthNumber = Numbers[0], &EtaNumber = Numbers[1],
+                              &KNumber = Numbers[2];
+
+/// The values of the string properties with a fixed set of values, the first the default
+inline constexpr std::array<const char *, 3> GrainValues = { "sphere", "agglomerate", "slab" };
+inline constexpr std::array<const char *, 2> MixingValues = { "bruggeman", "maxwell_garnett" },
+    SpecularValues = { "harvey_shack", "gaussian" }, SurfaceFresnelValues = { "none", "fresnel" },
+    SamplingValues = { "lobes", "cosine" }, EnergyValues = { "paper", "conserving" };
+
+struct Choice {
+    const char *name;
+    const char *const *values;
+    size_t count;
+};
+
+enum ChoiceId : size_t { Grains, Mixing, Specular, SurfaceFresnel, Sampling, Energy, Choices };
+
+inline constexpr Choice ChoiceTable[Choices] = {
+    { "grains", GrainValues.data(), GrainValues.size() },
+    { "mixing", MixingValues.data(), MixingValues.size() },
+    { "specular", SpecularValues.data(), SpecularValues.size() },
+    { "surface_fresnel", SurfaceFresnelValues.data(), SurfaceFresnelValues.size() },
+    { "sampling", SamplingValues.data(), SamplingValues.size() },
+    { "energy", EnergyValues.data(), EnergyValues.size() },
+};
+
+/// "\"a\", \"b\" and \"c\"": the valid values of a choice, for errors
+inline std::string valid_values(const Choice &c) {
+    std::string valid;
+    for (size_t i = 0; i < c.count; ++i)
+        valid += std::string(i ? (i + 1 == c.count ? " and " : ", ") : "") + "\"" +
+                 c.values[i] + "\"";
+    return valid;
+}
+
+/// Index of `value` among the values of the choice `name`; throws the project's error
+/// naming the property, the value and the valid values otherwise
+inline size_t choice_index(const char *name, const std::string &value) {
+    for (const Choice &c : ChoiceTable) {
+        if (std::strcmp(c.name, name) != 0)
+            continue;
+        for (size_t i = 0; i < c.count; ++i)
+            if (value == c.values[i])
+                return i;
+        powder::fail("powder: property \"", name, "\" = \"", value,
+                     "\" is not valid; valid values are ", valid_values(c));
+    }
+    powder::fail("powder: \"", name, "\" is not a property with a fixed set of values");
+}
+
+/// Free-form string properties and their defaults
+struct Text {
+    const char *name, *def;
+};
+
+inline constexpr Text Texts[] = {
+    { "lobes", "all" },
+    { "material", "hematite" },
+    { "rgb_wavelengths", "611.3, 549.1, 464.3" },
+};
+inline constexpr const Text &LobeList = Texts[0], &MaterialName = Texts[1],
+                            &RgbWavelengths = Texts[2];
+
+/// A built-in material: its optical-constant files (refractiveindex.info YAML, relative
+/// to the package's folder on Mitsuba's file resolver) and how it is described. Two files
+/// are the ordinary and extraordinary rays of a uniaxial crystal, averaged (2 o + e) / 3.
+struct Material {
+    const char *name;
+    std::array<const char *, 2> files;
+    const char *source;
+};
+
+inline constexpr Material Materials[] = {
+    { "hematite",
+      { "data/optical_constants/hematite_Querry-o.yml",
+        "data/optical_constants/hematite_Querry-e.yml" },
+      "hematite (Querry 1985, orientation average of o and e rays)" },
+    { "magnetite", { "data/optical_constants/magnetite_Querry.yml", nullptr },
+      "magnetite (Querry 1985)" },
+};
+
+/// The built-in material of a name (nullptr if none)
+inline const Material *find_material(const std::string &name) {
+    for (const Material &m : Materials)
+        if (name == m.name)
+            return &m;
+    return nullptr;
+}
+
+/// The properties that describe the grains; which of them a grain model allows is its rule
+inline constexpr std::array<const char *, 6> GrainProperties = {
+    "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
+};
+
+/// The properties a given `albedo` replaces (an error together with it)
+inline constexpr std::array<const char *, 4> AlbedoExcludes = {
+    "grains", "agglomerate_radius", "agglomerate_fill", "mixing"
+};
+
+/// A grain model (a value of `grains`, in the order of ChoiceTable[Grains]): the parameter
+/// that is its (first) population's size, the grain properties it allows and requires,
+/// and whether it allows a second population (radius2 and fraction2)
+struct GrainRule {
+    Id size;
+    std::array<const char *, 4> allowed; ///< nullptr-padded
+    const char *required;                ///< nullptr: none
+    bool two_populations;
+
+    bool allows(const char *name) const {
+        for (const char *a : allowed)
+            if (a && std::strcmp(a, name) == 0)
+                return true;
+        return false;
+    }
+};
+
+inline constexpr GrainRule GrainRules[3] = {
+    { Radius, { "radius", "radius2", "fraction2", nullptr }, nullptr, true },
+    { AgglomerateRadius, { "radius", "agglomerate_radius", "agglomerate_fill", "mixing" },
+      "agglomerate_radius", false },
+    { Radius, { "radius", "radius2", "fraction2", nullptr }, nullptr, true },
+};
+
+/**
+ * Check the grain properties given (has(name)) against the rules of grain model `model`
+ * (an index of ChoiceTable[Grains]), with or without a given albedo; throws the
+ * project's error naming the property and the models it is valid with.
+ */
+template <typename Has> void check_grain_properties(size_t model, const Has &has, bool albedo) {
+    const Choice &grains = ChoiceTable[Grains];
+    if (albedo)
+        for (const char *name : AlbedoExcludes)
+            if (has(name))
+                powder::fail("powder: property \"", name, "\" has no effect together with "
+                             "\"albedo\" (a given albedo replaces the one computed from the "
+                             "grains); give one or the other");
+    const GrainRule &rule = GrainRules[model];
+    for (const char *name : GrainProperties) {
+        if (!has(name) || rule.allows(name))
+            continue;
+        std::string valid;
+        size_t n = 0;
+        for (size_t m = 0; m < grains.count; ++m)
+            if (GrainRules[m].allows(name))
+                valid += std::string(n++ ? " or " : "") + "\"" + grains.values[m] + "\"";
+        powder::fail("powder: property \"", name, "\" cannot be used with grains = \"",
+                     grains.values[model], "\"", rule.two_populations ? "" : " (one population)",
+                     "; it is used only with grains = ", valid);
+    }
+    if (!albedo && rule.required && !has(rule.required))
+        powder::fail("powder: grains = \"", grains.values[model], "\" needs property \"",
+                     rule.required, "\" (valid range is ", Table[find(rule.required)].range.str(),
+                     ")");
+    if (has("radius2") != has("fraction2"))
+        powder::fail("powder: a second grain population needs both \"radius2\" and "
+                     "\"fraction2\"; got only \"", has("radius2") ? "radius2" : "fraction2", "\"");
+}
+
+} // namespace powder_param

@@ -1,0 +1,302 @@
+#pragma once
+
+/*
+ * The tables eval reads, and how it reads them. A table over the 1 nm wavelength grid
+ * (spectral variants) is read as records: each interval [i, i + 1] of the grid holds the
+ * values of its two nodes for every quantity, so that one packet gather per channel gives
+ * what linear interpolation needs (gathers dominate the cost of eval on CPUs with slow
+ * vector gathers). One packer (gather_entries, interval_records) builds every record
+ * table: the grain tables (albedo, tau_o), the surface Fresnel index, the volume
+ * constants (powder_volume.h) and the energy normalisation (powder_energy.h); in JIT
+ * variants it gathers from the tables, so the records stay differentiable.
+ */
+
+#include <mitsuba/core/spectrum.h>
+#include <mitsuba/render/interaction.h>
+
+#include <drjit/dynamic.h>
+#include <nanothread/nanothread.h>
+
+#include <complex>
+#include <vector>
+
+#include "powder_fresnel.h"
+#include "powder_optics.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+/// Runs row(i) for i in [0, n) on Dr.Jit's thread pool (the grain tables' rows);
+/// below 32 rows (RGB and mono tables) on the calling thread: too few to share
+struct DrJitParallelFor {
+    template <typename Row> void operator()(size_t n, Row &&row) const {
+        if (n < 32) {
+            for (size_t i = 0; i < n; ++i)
+                row(i);
+            return;
+        }
+        dr::parallel_for(dr::blocked_range<size_t>(0, n, 4),
+                         [&](const dr::blocked_range<size_t> &range) {
+                             for (size_t i = range.begin(); i != range.end(); ++i)
+                                 row(i);
+                         });
+    }
+};
+
+template <typename Float, typename Spectrum> struct PowderTables {
+    MI_IMPORT_TYPES()
+    using FloatStorage = DynamicBuffer<Float>;
+    using UInt32Storage = DynamicBuffer<UInt32>;
+    static constexpr int TableSize = 471; ///< spectral grid: 360..830 nm
+    static constexpr float TableMin = 360.f, TableStep = 1.f;
+
+    /// Entry e of the result is source[which[e]][index[e]]; differentiable (JIT: gathers)
+    static FloatStorage gather_entries(const std::vector<const FloatStorage *> &source,
+                                       const std::vector<uint32_t> &which,
+                                       const std::vector<uint32_t> &index) {
+        if constexpr (dr::is_jit_v<Float>) {
+            UInt32Storage idx = dr::load<UInt32Storage>(index.data(), index.size()),
+                          q = dr::load<UInt32Storage>(which.data(), which.size());
+            FloatStorage out = dr::gather<FloatStorage>(*source.back(), idx);
+            for (uint32_t k = (uint32_t) source.size() - 1; k-- > 0;)
+                out = dr::select(q == k, dr::gather<FloatStorage>(*source[k], idx), out);
+            dr::make_opaque(out);
+            return out;
+        } else {
+            std::vector<ScalarFloat> packed(index.size());
+            for (size_t e = 0; e < packed.size(); ++e)
+                packed[e] = (*source[which[e]])[index[e]];
+            return dr::load<FloatStorage>(packed.data(), packed.size());
+        }
+    }
+
+    /// Records of the intervals of n nodes: for node i, (q0[i], q0[i + 1], q1[i], q1[i + 1],
+    /// ...) of the quantities q (the last interval repeats its node)
+    static FloatStorage interval_records(const std::vector<const FloatStorage *> &quantities,
+                                         uint32_t n) {
+        const uint32_t R = 2 * (uint32_t) quantities.size(); // entries per record
+        std::vector<uint32_t> node(R * n), quantity(R * n);
+        for (uint32_t i = 0; i < n; ++i)
+            for (uint32_t j = 0; j < R; ++j) {
+                node[R * i + j] = std::min(i + (j & 1u), n - 1);
+                quantity[R * i + j] = j >> 1;
+            }
+        return gather_entries(quantities, quantity, node);
+    }
+
+    static FloatStorage load(const std::vector<ScalarFloat> &v) {
+        return dr::load<FloatStorage>(v.data(), v.size());
+    }
+
+    /// Spectral variants: each channel's position in the 1 nm grid (entry floor(t),
+    /// weight t - floor(t) of the next), clamped inside the table
+    static UnpolarizedSpectrum table_position(const SurfaceInteraction3f &si) {
+        if constexpr (is_spectral_v<Spectrum>)
+            return dr::clip((si.wavelengths - TableMin) * (1.f / TableStep), 0.f,
+                            (float) (TableSize - 1) - 1e-3f);
+        else
+            return UnpolarizedSpectrum(0.f);
+    }
+
+    /// Spectral variants: the quantities of interval records of P entries (P / 2
+    /// quantities) at the channel wavelengths; assign(c, value) receives value(q),
+    /// quantity q interpolated at channel c
+    template <size_t P, typename Assign>
+    static void read_records(const FloatStorage &records, const SurfaceInteraction3f &si,
+                             Mask active, Assign &&assign) {
+        UnpolarizedSpectrum t = table_position(si);
+        for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+            UInt32 i0 = UInt32(dr::floor(t[c]));
+            auto v = dr::gather<dr::Array<Float, P>>(records, i0, active);
+            Float w = t[c] - Float(i0);
+            assign(c, [&](size_t q) { return dr::lerp(v[2 * q], v[2 * q + 1], w); });
+        }
+    }
+
+    /// A table at the channel wavelengths: linear interpolation on the 1 nm grid
+    /// (spectral), or one entry per channel (RGB, mono)
+    static UnpolarizedSpectrum lookup(const FloatStorage &table, const SurfaceInteraction3f &si,
+                                      Mask active) {
+        UnpolarizedSpectrum out(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum t = table_position(si);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                UInt32 i0 = UInt32(dr::floor(t[c]));
+                Float w = t[c] - Float(i0);
+                out[c] = dr::lerp(dr::gather<Float>(table, i0, active),
+                                  dr::gather<Float>(table, i0 + 1u, active), w);
+            }
+        } else {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                out[c] = dr::gather<Float>(table, UInt32((uint32_t) c), active);
+        }
+        return out;
+    }
+
+    // ------------------------------------------------------------- Fresnel index
+
+    /// surface_fresnel: the grain index n + i k at the table wavelengths, as per-channel
+    /// constants (RGB, mono; and spectral when the index is the same at every wavelength)
+    /// or interval records (eta, k) of the 1 nm grid
+    struct FresnelIndex {
+        bool constant = false; ///< one index at every wavelength
+        UnpolarizedSpectrum eta = 0.f, k = 0.f, inv_f1 = 0.f;
+        FloatStorage records;
+    };
+
+    /// The FresnelIndex of m at the wavelengths (nm); the factor F(c) / F(1) is undefined
+    /// where the interface reflects nothing at normal incidence (m = 1)
+    static FresnelIndex fresnel_index(const std::vector<std::complex<double>> &index,
+                                      const std::vector<double> &wavelengths) {
+        std::vector<ScalarFloat> eta, k;
+        for (size_t i = 0; i < index.size(); ++i) {
+            const std::complex<double> &m = index[i];
+            // below 1e-5 (|m - 1| < 0.0063) F(1) is ill-conditioned in single precision
+            if (double f1 = powder::fresnel_normal(m.real(), m.imag()); !(f1 >= 1e-5))
+                Throw("powder: property \"surface_fresnel\" = \"fresnel\": the grain index "
+                      "%g + %gi at %g nm is too close to 1: the smooth interface reflects "
+                      "almost nothing (F(1) = %g < 1e-5), and the factor F(c) / F(1) is not "
+                      "defined to single precision", m.real(), m.imag(), wavelengths[i], f1);
+            eta.push_back((ScalarFloat) m.real());
+            k.push_back((ScalarFloat) m.imag());
+        }
+        FresnelIndex out;
+        out.constant =
+            std::all_of(eta.begin(), eta.end(), [&](ScalarFloat v) { return v == eta[0]; }) &&
+            std::all_of(k.begin(), k.end(), [&](ScalarFloat v) { return v == k[0]; });
+        if (is_spectral_v<Spectrum> && !out.constant) {
+            FloatStorage e = load(eta), kk = load(k);
+            out.records = interval_records({ &e, &kk }, (uint32_t) eta.size());
+            return out;
+        }
+        for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+            size_t j = is_spectral_v<Spectrum> ? 0 : c;
+            out.eta[c] = eta[j];
+            out.k[c] = k[j];
+            out.inv_f1[c] =
+                (ScalarFloat) (1.0 / powder::fresnel_normal((double) eta[j], (double) k[j]));
+        }
+        return out;
+    }
+
+    /// surface_fresnel: F(c) / F(1) per channel at the cosine c of the half vector
+    static UnpolarizedSpectrum fresnel_factor(const FresnelIndex &f, const SurfaceInteraction3f &si,
+                                              const Float &c, Mask active) {
+        if (is_spectral_v<Spectrum> && !f.constant) {
+            UnpolarizedSpectrum out(0.f);
+            read_records<4>(f.records, si, active, [&](size_t ch, auto value) {
+                Float eta = value(0), k = value(1);
+                out[ch] = powder::fresnel_unpolarized(c, eta, k) / powder::fresnel_normal(eta, k);
+            });
+            return out;
+        }
+        return powder::fresnel_unpolarized(UnpolarizedSpectrum(c), f.eta, f.k) * f.inv_f1;
+    }
+
+    // ------------------------------------------------------------- Mie tables
+
+    /// The albedo table of constant grains: rho, and the efficiencies of each population
+    /// (attributes), per table wavelength
+    struct MieTables {
+        FloatStorage rho, qext, qsca, qext2, qsca2;
+        DRJIT_STRUCT(MieTables, rho, qext, qsca, qext2, qsca2)
+    };
+
+    /// Mie efficiencies and rho = Q_sca / Q_ext (two populations: docs/model.md); with
+    /// `params` (the grain parameters whose gradients are tracked, each with its column of
+    /// derivatives), rho's first derivatives with respect to them are attached to the AD
+    /// graph as tangents. The rows are spread over Dr.Jit's threads.
+    static MieTables
+    mie_tables(const powder::Grains &grains, const std::vector<double> &wavelengths,
+               const std::vector<std::complex<double>> &index,
+               const std::vector<std::pair<const Float *, double powder::AlbedoRow::*>> &params) {
+        std::vector<powder::AlbedoRow> rows = powder::albedo_table(
+            grains, wavelengths, index, !params.empty(), DrJitParallelFor());
+        size_t n = rows.size();
+        auto column = [&](double powder::AlbedoRow::*c) {
+            std::vector<ScalarFloat> v(n);
+            for (size_t i = 0; i < n; ++i)
+                v[i] = (ScalarFloat) (rows[i].*c);
+            return load(v);
+        };
+        MieTables t{ column(&powder::AlbedoRow::rho), column(&powder::AlbedoRow::q_ext1),
+                     column(&powder::AlbedoRow::q_sca1), column(&powder::AlbedoRow::q_ext2),
+                     column(&powder::AlbedoRow::q_sca2) };
+        // value unchanged (the differences are zero), first derivatives exact
+        if constexpr (dr::is_diff_v<Float>)
+            for (auto &[param, d] : params)
+                t.rho = t.rho + column(d) * (*param - dr::detach(*param));
+        dr::make_opaque(t.rho);
+        return t;
+    }
+
+    // ------------------------------------------------ spatially varying grains
+
+    /// The efficiency table of spatially varying grains as eval reads it
+    struct GrainTexture {
+        powder::EfficiencyTable table;
+        FloatStorage records;
+        ScalarFloat u0 = 0.f, du = 1.f;
+    };
+
+    /// Upload an efficiency table (powder::efficiency_table) for grain_efficiencies
+    static GrainTexture grain_texture(powder::EfficiencyTable &&table) {
+        GrainTexture g;
+        std::vector<ScalarFloat> rec(table.records.begin(), table.records.end());
+        g.records = load(rec);
+        dr::make_opaque(g.records);
+        g.u0 = (ScalarFloat) table.u0;
+        g.du = (ScalarFloat) table.du;
+        g.table = std::move(table);
+        return g;
+    }
+
+    /// (Q_ext, Q_sca) per channel of grains of radius r (um, per lane; or of the fill of
+    /// agglomerates) from the efficiency table: cubic Hermite in ln r (in the fill), and in
+    /// spectral variants linear in wavelength on the 1 nm grid, as the constant tables
+    static std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    grain_efficiencies(const GrainTexture &g, const Float &r, const SurfaceInteraction3f &si,
+                       Mask active) {
+        uint32_t nodes = (uint32_t) g.table.nodes;
+        Float u = g.table.axis == powder::TableAxis::Fill ? r : dr::log(r);
+        Float t = dr::clip((u - g.u0) * (1.f / g.du), 0.f, (float) (nodes - 1) - 1e-3f);
+        UInt32 j = UInt32(dr::floor(dr::detach(t)));
+        Float s = t - Float(j), one_s = 1.f - s,
+              h00 = (1.f + 2.f * s) * dr::square(one_s), h10 = s * dr::square(one_s) * g.du,
+              h01 = dr::square(s) * (3.f - 2.f * s), h11 = dr::square(s) * (s - 1.f) * g.du;
+        auto hermite = [&](const UInt32 &row) {
+            auto v = dr::gather<dr::Array<Float, 8>>(g.records, row * nodes + j, active);
+            return std::pair<Float, Float>(h00 * v[0] + h10 * v[2] + h01 * v[4] + h11 * v[6],
+                                           h00 * v[1] + h10 * v[3] + h01 * v[5] + h11 * v[7]);
+        };
+        UnpolarizedSpectrum qe, qs;
+        if constexpr (is_spectral_v<Spectrum>) {
+            UnpolarizedSpectrum pos = table_position(si);
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+                UInt32 i0 = UInt32(dr::floor(pos[c]));
+                Float w = pos[c] - Float(i0);
+                auto [e0, s0] = hermite(i0);
+                auto [e1, s1] = hermite(i0 + 1u);
+                qe[c] = dr::lerp(e0, e1, w);
+                qs[c] = dr::lerp(s0, s1, w);
+            }
+        } else {
+            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
+                std::tie(qe[c], qs[c]) = hermite(UInt32((uint32_t) c));
+        }
+        return { qe, qs };
+    }
+
+    /// The albedo of spatially varying grains per lane (radii r1, r2 and fraction f2 of the
+    /// second population, per lane; one population without `two`)
+    static UnpolarizedSpectrum grain_albedo(const GrainTexture &g, const Float &r1,
+                                            const Float *r2, const Float *f2,
+                                            const SurfaceInteraction3f &si, Mask active) {
+        auto [qe1, qs1] = grain_efficiencies(g, r1, si, active);
+        if (!r2)
+            return qs1 / qe1;
+        auto [qe2, qs2] = grain_efficiencies(g, *r2, si, active);
+        return powder::population_mix(qe1, qs1, r1, qe2, qs2, *r2, *f2);
+    }
+};
+
+NAMESPACE_END(mitsuba)
