@@ -16,7 +16,7 @@ from mitsuba_powder.cli import main
 from mitsuba_powder.fitting.protocols import geometries
 from mitsuba_powder.rendering.furnace import white_furnace
 from mitsuba_powder.rendering.gonio import FLOAT32_U, GonioResult, render_gonio
-from reference import Params, brdf
+from oracles.model import Params, brdf
 
 SCENE = Path(__file__).resolve().parents[1] / "scenes" / "gonio.xml"
 RGB_NM = (611.3, 549.1, 464.3)

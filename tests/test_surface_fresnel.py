@@ -23,7 +23,7 @@ from helpers import (
     sample,
     use_variant,
 )
-from reference import Params, brdf_terms, fresnel_unpolarized, surface_fresnel_factor
+from oracles.model import Params, brdf_terms, fresnel_unpolarized, surface_fresnel_factor
 
 VARIANTS = ["scalar_rgb", "scalar_spectral", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
 #: docs/model.md's reference values: index -> {angle (deg): F}
