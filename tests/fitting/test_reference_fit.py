@@ -14,7 +14,7 @@ import pytest
 from oracles.fit import BOUNDS, FREE, model_brf, reference_fit
 from oracles.grains import fresnel_inside, rbar_fresnel, tau_o_fresnel
 
-PTFE = Path(__file__).resolve().parents[1] / "measurements" / "ptfe_germer2017.csv"
+PTFE = Path(__file__).resolve().parents[2] / "measurements" / "ptfe_germer2017.csv"
 LAM = 532.0
 ETA = 1.35
 #: PTFE-like (synthetic): g, A_v, rho near the PTFE fits; kappa and A_s' large enough that the

@@ -15,7 +15,7 @@ from mitsuba_powder.cli import main
 from mitsuba_powder.plugin.appearance import colour_of_spectrum, powder_colour
 from oracles.grains import hematite_nk, mie_albedo, mie_efficiencies, tau_o_trapezoid
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_optical_properties_match_miepython():

@@ -18,7 +18,7 @@ from mitsuba_powder.rendering.furnace import white_furnace
 from mitsuba_powder.rendering.gonio import FLOAT32_U, GonioResult, render_gonio
 from oracles.model import Params, brdf
 
-SCENE = Path(__file__).resolve().parents[1] / "scenes" / "gonio.xml"
+SCENE = Path(__file__).resolve().parents[2] / "scenes" / "gonio.xml"
 RGB_NM = (611.3, 549.1, 464.3)
 PROPS = {"albedo": {"type": "rgb", "value": [0.85, 0.55, 0.3]}, "extinction": 1.0,
          "tau_o": 2.0 / 3.0}
@@ -330,7 +330,7 @@ def test_batch_images_do_not_leak_into_each_other(guard, monkeypatch):
     from mitsuba_powder.io.measurements import load_measurements
 
     monkeypatch.setattr(gonio, "GUARD_COLUMNS", guard)
-    data = load_measurements(Path(__file__).resolve().parents[1] / "measurements"
+    data = load_measurements(Path(__file__).resolve().parents[2] / "measurements"
                              / "ptfe_germer2017.csv")
     data = data.subset((data.wavelength == 351) & (data.theta_i == 75))
     assert len(data) == 305

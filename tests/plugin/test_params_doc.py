@@ -12,7 +12,7 @@ import pytest
 
 from helpers import use_variant
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SOURCE = (ROOT / "src" / "bsdfs" / "powder.cpp").read_text()
 DOCS = (ROOT / "docs" / "powder.md").read_text()
 

@@ -132,7 +132,7 @@ def test_parameter_update_reuses_kernels():
                                         ("amplitude_volume", 0.8)])
 
 
-#: spectral paths of the volume constants (tests/test_fast_paths.py): computed once per
+#: spectral paths of the volume constants (tests/plugin/test_fast_paths.py): computed once per
 #: parameter change (one-number albedo, tau_o given; or optically thick, with g = 0.3:
 #: 2 c0 tau_o >= 14.1), or tabulated on the 1 nm grid (4 or 8 values per record; albedo 0.8:
 #: 2 c0 tau_o >= 11.3; 100 nm grains: >= 10.9; or, optically thick, rho alone: 50 nm grains,
