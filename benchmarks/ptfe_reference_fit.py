@@ -24,9 +24,9 @@ import numpy as np
 from _common import arg_parser, print_table, pyplot, save, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))  # tests/reference_fit.py, tests/reference.py
+sys.path.insert(0, str(ROOT / "tests"))  # tests/oracles/ (the reference fit and model)
 
-from reference_fit import FREE, reference_fit  # noqa: E402
+from oracles.fit import FREE, reference_fit  # noqa: E402
 
 DATA = ROOT / "measurements" / "ptfe_germer2017.csv"
 WAVELENGTHS = (351.0, 532.0, 633.0, 1064.0)

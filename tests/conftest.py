@@ -1,7 +1,8 @@
 import sys
 from pathlib import Path
 
-# Make tests/reference.py and tests/helpers.py importable as top-level modules
+# Make tests/helpers.py and the tests/oracles package importable as top-level modules from the
+# test folders (tests/plugin, tests/grains, ...: no __init__.py, pytest's default import mode)
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import pytest  # noqa: E402

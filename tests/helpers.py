@@ -1,4 +1,7 @@
-"""Shared test utilities: variants, plugin construction and vectorised evaluation."""
+"""Shared test utilities: variants, plugin construction and vectorised evaluation, random
+parameter sets, the hemispherical reflectance and log messages of a plugin, chi-square adapters,
+and gradients against finite differences. Test modules import these from here, never from
+each other."""
 
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ import numpy as np
 import pytest
 
 from mitsuba_powder._variants import VARIANTS as BUILT_VARIANTS
-from reference import Params
+from oracles.model import Params
 
 #: The variants the installed plugin was built for (generated from CMakeLists.txt's list)
 ALL_VARIANTS = list(BUILT_VARIANTS)
@@ -197,3 +200,232 @@ def perturb(w: np.ndarray, scale: np.ndarray, rng: np.random.Generator) -> np.nd
     xy = np.where(r > 0.999, xy / r * 0.999, xy)
     z = np.sqrt(1.0 - np.sum(xy * xy, axis=1, keepdims=True))
     return np.concatenate([xy, z], axis=1)
+
+
+# ---------- random parameter sets
+
+
+def random_params(rng: np.random.Generator, k: int) -> tuple[Params, Albedo]:
+    """Parameter set ``k`` drawn from ``rng``: every lobe on, infinite thickness for even ``k``,
+    the Gaussian lobe every third ``k``, conservative grains (rho = 1 in the first channel)
+    every fifth; extinction in 1/um, lengths in um."""
+    p = Params(
+        amplitude_volume=rng.uniform(0.2, 2.0),
+        g=rng.uniform(-0.95, 0.95),
+        extinction=10 ** rng.uniform(-2, 2),
+        tau_o=rng.choice([0.0, rng.uniform(0.0, 20.0), 2.0 / 3.0]),
+        thickness=np.inf if k % 2 == 0 else 10 ** rng.uniform(-1, 2),
+        amplitude_surface=10 ** rng.uniform(-6, -2),
+        correlation_length=10 ** rng.uniform(-1, 0.7),
+        specular="harvey_shack" if k % 3 else "gaussian",
+        sigma=rng.uniform(0.02, 0.5),
+    )
+    rho = rng.uniform(0.0, 1.0, 3)
+    if k % 5 == 0:
+        rho[0] = 1.0  # conservative grains: c0 = 0
+    return p, Albedo(rho)
+
+
+# ---------- reflectance and log messages of a loaded plugin
+
+
+def hemispherical_reflectance(bsdf, theta_i_deg: float, n: int = 2048) -> np.ndarray:
+    """Integral of f cos(theta_o) over the hemisphere, on an n x n midpoint grid of the
+    projected disc in (r^2, phi) (dA = mu_o domega = d(r^2)/2 dphi)."""
+    u = (np.arange(n) + 0.5) / n
+    phi = (np.arange(n) + 0.5) / n * 2.0 * np.pi
+    U, P = np.meshgrid(u, phi, indexing="ij")
+    r = np.sqrt(U)
+    wo = np.stack([(r * np.cos(P)).ravel(), (r * np.sin(P)).ravel(), np.sqrt(1.0 - U).ravel()], 1)
+    ti = np.radians(theta_i_deg)
+    wi = np.tile([np.sin(ti), 0.0, np.cos(ti)], (wo.shape[0], 1))
+    f = evaluate(bsdf, wi, wo) / wo[:, 2:3].astype(np.float32)
+    return f.sum(axis=0) * 0.5 / n * (2.0 * np.pi / n)
+
+
+class LogCapture(mi.Appender):
+    """A Mitsuba log appender that keeps (level, text) of every message."""
+
+    def __init__(self):
+        super().__init__()
+        self.messages: list[tuple[mi.LogLevel, str]] = []
+
+    def append(self, level, text):
+        self.messages.append((level, text))
+
+    def log_progress(self, *args, **kwargs):
+        pass
+
+
+def load_and_capture(props: dict) -> list[str]:
+    """Warnings logged while loading ``props``."""
+    logger = mi.logger()
+    cap = LogCapture()
+    logger.add_appender(cap)
+    try:
+        mi.load_dict(props)
+    finally:
+        logger.remove_appender(cap)
+    return [t for lvl, t in cap.messages if lvl == mi.LogLevel.Warn]
+
+
+# ---------- chi-square adapters (mitsuba.chi2)
+
+
+def adapters(props: dict, wi, domain=None, wavelengths=None, zero_weight_fails=False):
+    """(sample_func, pdf_func) for mitsuba.chi2; ``wavelengths`` (nm, 4 values) for
+    spectral variants. With ``zero_weight_fails`` a sample of weight 0 (in every channel)
+    counts as failed, i.e. is left out of the histogram like one of pdf 0."""
+    bsdf = mi.load_dict({"type": "powder", **props})
+    ctx = mi.BSDFContext()
+
+    def si_for(n):
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi = wi
+        if wavelengths is not None:
+            si.wavelengths = mi.UnpolarizedSpectrum(*wavelengths)
+        return si
+
+    def sample_func(s):
+        n = dr.width(s)
+        bs, weight = bsdf.sample(ctx, si_for(n), s[0], mi.Point2f(s[1], s[2]))
+        # A sample fails when its pdf is 0 (off the disc); a valid sample may still have a
+        # zero weight where f underflows. Failed samples are kept inside the domain.
+        failed = bs.pdf <= 0.0
+        if zero_weight_fails:
+            failed |= dr.all(mi.unpolarized_spectrum(weight) == 0.0)
+        wo = dr.select(failed, mi.Vector3f(wi), bs.wo)
+        return wo, mi.Float(dr.select(failed, 0.0, 1.0))
+
+    def pdf_func(p):
+        if domain is None:
+            return bsdf.pdf(ctx, si_for(dr.width(p)), p)
+        wo, jac = domain.direction(p)
+        return bsdf.pdf(ctx, si_for(dr.width(p.x)), wo) * jac
+
+    return sample_func, pdf_func
+
+
+def direction(theta_deg: float):
+    """The unit direction in the xz plane at ``theta_deg`` (degrees) from the normal."""
+    t = np.radians(theta_deg)
+    return mi.ScalarVector3f(float(np.sin(t)), 0.0, float(np.cos(t)))
+
+
+# ---------- gradients and kernel reuse
+
+
+def geometry(n: int = 3000, spectral: bool = False):
+    """Direction pairs (a third near back-scattering, a third near the mirror direction) and
+    loss weights; spectral: four random wavelengths per lane (nm)."""
+    rng = np.random.default_rng(21)
+    wi = random_hemisphere(n, rng, 0.1)
+    wo = random_hemisphere(n, rng, 0.1)
+    wo[: n // 3] = perturb(wi[: n // 3], 0.05, rng)
+    wo[n // 3: 2 * n // 3] = perturb(wi[n // 3: 2 * n // 3] * [-1, -1, 1], 0.1, rng)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = mi.Vector3f(*[wi[:, k].astype(np.float32) for k in range(3)])
+    wov = mi.Vector3f(*[wo[:, k].astype(np.float32) for k in range(3)])
+    weights = mi.Float(np.linspace(0.5, 1.5, n).astype(np.float32))
+    if spectral:
+        lam = np.random.default_rng(3).uniform(360.0, 830.0, (4, n)).astype(np.float32)
+        si.wavelengths = mi.UnpolarizedSpectrum(*[mi.Float(row) for row in lam])
+    return si, wov, weights
+
+
+def loss(bsdf, si, wo, weights):
+    """sum of weights x (channel 1 + 2 channel 2 + 3 channel 3 [+ 4 channel 4])"""
+    value = bsdf.eval(mi.BSDFContext(), si, wo)
+    return dr.sum(weights * sum((c + 1.0) * value[c] for c in range(len(value))))
+
+
+def loss_value(bsdf, si, wo, weights) -> float:
+    """Loss accumulated in float64 (for finite differences)."""
+    value = np.array(bsdf.eval(mi.BSDFContext(), si, wo), dtype=np.float64)
+    w = np.array(weights, dtype=np.float64)
+    return float(np.sum(w * sum((c + 1.0) * value[c] for c in range(len(value)))))
+
+
+def scalar_keys(params) -> list[tuple[str, int | None]]:
+    """(key, component) of every scalar of ``params``: component None for a Float, 0-2 for
+    the channels of a Color3f."""
+    keys = []
+    for key in params.keys():
+        v = params[key]
+        if isinstance(v, mi.Float):
+            keys.append((key, None))
+        else:  # Color3f
+            keys.extend((key, c) for c in range(3))
+    return keys
+
+
+def get_scalar(params, key: str, comp: int | None) -> float:
+    """The value of a Float parameter, or of one component of a Color3f parameter."""
+    v = params[key]
+    return float(v[comp][0]) if comp is not None else float(v[0])
+
+
+def set_scalar(params, key: str, comp: int | None, x: float) -> None:
+    """Set a Float parameter, or one component of a Color3f parameter, and update."""
+    if comp is None:
+        params[key] = mi.Float(x)
+    else:
+        c = [float(params[key][i][0]) for i in range(3)]
+        c[comp] = x
+        params[key] = mi.Color3f(*c)
+    params.update()
+
+
+def gradients_and_differences(bsdf, params, keys=None, spectral: bool = False,
+                              steps: dict[str, float] | None = None):
+    """Per scalar parameter (all, or the Float parameters ``keys``): (key, component, AD
+    gradient of the loss, central finite difference with a relative step of 1 % or
+    ``steps[key]``, (loss at x0 + h, x0))."""
+    si, wo, weights = geometry(spectral=spectral)
+    steps = steps or {}
+    out = []
+    for key, comp in (scalar_keys(params) if keys is None else [(k, None) for k in keys]):
+        # analytic gradient
+        dr.enable_grad(params[key])
+        params.update()
+        dr.backward(loss(bsdf, si, wo, weights))
+        grad = dr.grad(params[key])
+        grad = float(grad[comp][0] if comp is not None else grad[0])
+        dr.disable_grad(params[key])
+        params.update()
+
+        # central finite difference
+        x0 = get_scalar(params, key, comp)
+        h = steps.get(key, 1e-2) * abs(x0)
+        vals = []
+        for x in (x0 + h, x0 - h):
+            set_scalar(params, key, comp, x)
+            vals.append(loss_value(bsdf, si, wo, weights))
+        set_scalar(params, key, comp, x0)
+        out.append((key, comp, grad, (vals[0] - vals[1]) / (2 * h), (vals[0], x0)))
+    return out
+
+
+def assert_updates_reuse_kernels(bsdf, updates: list[tuple[str, float]]) -> None:
+    """After a first evaluation, each update of a parameter through mi.traverse (``updates``:
+    key, value) evaluates with cached kernels only."""
+    params = mi.traverse(bsdf)
+    si, wo, weights = geometry(1000)
+
+    def run():
+        dr.eval(loss(bsdf, si, wo, weights))
+
+    run()  # compile once
+    dr.kernel_history_clear()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for key, value in updates:
+            params[key] = mi.Float(value)
+            params.update()
+            run()
+        history = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert history, "no kernel ran"
+    assert all(h.get("cache_hit", False) for h in history), [
+        (h.get("cache_hit"), h.get("operation_count")) for h in history]

@@ -1,6 +1,6 @@
-"""The independent reference fit (tests/reference_fit.py) that the product's fitter is judged
+"""The independent reference fit (tests/oracles/fit.py) that the product's fitter is judged
 against (issue 10) works: its Fresnel tau_o matches docs/model.md's reference values, and its
-multi-start least squares recovers known parameters from data that tests/reference.py's model
+multi-start least squares recovers known parameters from data that tests/oracles/model.py's model
 generates at PTFE geometries (a subset of measurements/ptfe_germer2017.csv)."""
 
 from __future__ import annotations
@@ -11,17 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reference_fit import (
-    BOUNDS,
-    FREE,
-    fresnel_inside,
-    model_brf,
-    rbar_fresnel,
-    reference_fit,
-    tau_o_fresnel,
-)
+from oracles.fit import BOUNDS, FREE, model_brf, reference_fit
+from oracles.grains import fresnel_inside, rbar_fresnel, tau_o_fresnel
 
-PTFE = Path(__file__).resolve().parents[1] / "measurements" / "ptfe_germer2017.csv"
+PTFE = Path(__file__).resolve().parents[2] / "measurements" / "ptfe_germer2017.csv"
 LAM = 532.0
 ETA = 1.35
 #: PTFE-like (synthetic): g, A_v, rho near the PTFE fits; kappa and A_s' large enough that the

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from helpers import channel_wavelengths, evaluate, perturb, random_hemisphere, use_variant
-from reference import Params, brdf
+from oracles.model import Params, brdf
 
 
 def constant_bitmap(value: float, channels: int):

@@ -1,21 +1,20 @@
 """Grain models (docs/model.md, property `grains`): effective-medium agglomerates and Hapke's
 equivalent slab. The C++ functions of ``mitsuba_powder._optics`` and the plugin's albedo are
-checked against tests/grain_reference.py (NumPy + miepython, written from docs/model.md only)."""
+checked against tests/oracles/grains.py (NumPy + miepython, written from docs/model.md only)."""
 
 from __future__ import annotations
 
 import re
 
 import drjit as dr
-import grain_reference as ref
 import mitsuba as mi
 import numpy as np
 import pytest
-from test_energy import load_and_capture
 
-from helpers import use_variant
+from helpers import load_and_capture, use_variant
 from mitsuba_powder import _optics
-from test_mie import hematite_nk
+from oracles import grains as ref
+from oracles.grains import hematite_nk
 
 RGB_WAVELENGTHS = (611.3, 549.1, 464.3)
 #: integer wavelengths (nm): the spectral plugin interpolates a 1 nm table
@@ -88,7 +87,7 @@ def test_oracle_agglomerate_of_fill_one_is_the_sphere():
         for wl in (400.0, 700.0):
             m = hematite([wl])[0]
             assert ref.agglomerate_albedo(m, 0.3, 1.0, wl, mixing) == pytest.approx(
-                ref.sphere_albedo(m, 0.3, wl), rel=1e-12)
+                ref.mie_albedo(m, 0.3, wl), rel=1e-12)
 
 
 def test_oracle_size_parameter():
@@ -149,13 +148,8 @@ def oracle_table(grains: str, index: list[complex], radius: float, radius2=None,
         elif grains == "slab":
             out.append(ref.slab_albedo(m, 2 * radius, wl) if radius2 is None else
                        ref.slab_albedo_two(m, radius, radius2, fraction2, wl))
-        elif radius2 is None:
-            out.append(ref.sphere_albedo(m, radius, wl))
         else:
-            e1, s1 = ref.mie_efficiencies(m, 2 * np.pi * radius / (wl * 1e-3))
-            e2, s2 = ref.mie_efficiencies(m, 2 * np.pi * radius2 / (wl * 1e-3))
-            w1, w2 = (1 - fraction2) / radius, fraction2 / radius2
-            out.append((w1 * s1 + w2 * s2) / (w1 * e1 + w2 * e2))
+            out.append(ref.mie_albedo(m, radius, wl, radius2, fraction2))
     return np.array(out)
 
 
@@ -371,7 +365,7 @@ def test_plugin_grains_sphere_is_the_default():
     a = plugin_albedo(mi.load_dict({"type": "powder", "radius": 0.1}), lams)
     b = plugin_albedo(mi.load_dict({"type": "powder", "radius": 0.1, "grains": "sphere"}), lams)
     np.testing.assert_array_equal(a, b)
-    want = [ref.sphere_albedo(m, 0.1, wl) for m, wl in zip(hematite(lams), lams)]
+    want = [ref.mie_albedo(m, 0.1, wl) for m, wl in zip(hematite(lams), lams)]
     np.testing.assert_allclose(b, want, rtol=1e-4)
 
 

@@ -7,9 +7,17 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import Albedo, channel_wavelengths, evaluate, make_bsdf, random_hemisphere, use_variant
-from reference import Params
-from test_values import random_params
+from helpers import (
+    Albedo,
+    channel_wavelengths,
+    evaluate,
+    hemispherical_reflectance,
+    make_bsdf,
+    random_hemisphere,
+    random_params,
+    use_variant,
+)
+from oracles.model import Params
 
 
 @pytest.mark.parametrize("variant", ["scalar_rgb", "llvm_ad_rgb", "llvm_ad_spectral"])
@@ -47,20 +55,6 @@ def test_coherent_equals_ladder_at_backscattering(variant):
         l2 = evaluate(make_bsdf(p, albedo), wi, wi, lam)
         assert np.all(l2 >= 0)
         np.testing.assert_allclose(c, l2, rtol=1e-5, atol=1e-12, err_msg=f"set {k}: {p}")
-
-
-def hemispherical_reflectance(bsdf, theta_i_deg: float, n: int = 2048) -> np.ndarray:
-    """Integral of f cos(theta_o) over the hemisphere, on an n x n midpoint grid of the
-    projected disc in (r^2, phi) (dA = mu_o domega = d(r^2)/2 dphi)."""
-    u = (np.arange(n) + 0.5) / n
-    phi = (np.arange(n) + 0.5) / n * 2.0 * np.pi
-    U, P = np.meshgrid(u, phi, indexing="ij")
-    r = np.sqrt(U)
-    wo = np.stack([(r * np.cos(P)).ravel(), (r * np.sin(P)).ravel(), np.sqrt(1.0 - U).ravel()], 1)
-    ti = np.radians(theta_i_deg)
-    wi = np.tile([np.sin(ti), 0.0, np.cos(ti)], (wo.shape[0], 1))
-    f = evaluate(bsdf, wi, wo) / wo[:, 2:3].astype(np.float32)
-    return f.sum(axis=0) * 0.5 / n * (2.0 * np.pi / n)
 
 
 @pytest.mark.parametrize("theta_i", [0.0, 30.0, 60.0, 80.0])

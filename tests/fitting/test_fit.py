@@ -26,7 +26,7 @@ from mitsuba_powder.io.ptfe import convert_germer_ptfe
 from mitsuba_powder.plugin.brf import BatchBRF, PowderBRF
 from mitsuba_powder.plugin.grains import GrainOptics
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHARED_PTFE = SHARED / "data" / "ptfe_germer2017" / "PTFE.data.csv"
 
 # ----------------------------------------------------------------- loader
@@ -402,7 +402,7 @@ def _ptfe_reference() -> dict[float, float]:
 ])
 def test_ptfe_fit_reaches_the_reference_fits_best_loss(wavelength, seeds):
     """Real NIST PTFE data: the loss is within 2 % of the best the independent 60-start
-    reference fit found (benchmarks/ptfe_reference_fit.py: tests/reference.py's NumPy model and
+    reference fit found (benchmarks/ptfe_reference_fit.py: tests/oracles/model.py's NumPy model and
     scipy), and seeds agree within 1 %."""
     data = load_measurements(ROOT / "measurements" / "ptfe_germer2017.csv")
     data = data.subset(data.wavelength == wavelength)
@@ -650,7 +650,7 @@ def test_cli_simulate_fit_report_and_prediction(tmp_path, capsys):
     assert report["prediction"]["n"] == int(np.sum(load_measurements(data_path).theta_i == 60))
     assert report["prediction"]["relative_rmse_percent"] < 10
     # the default --figures summary: one set for the whole fit, no per-wavelength files
-    # (tests/test_fit_report.py: every mode)
+    # (tests/fitting/test_fit_report.py: every mode)
     for png in ("summary_rmse.png", "summary_residuals.png", "summary_principal_plane.png"):
         assert (out / png).stat().st_size > 10_000
     assert not (out / "principal_plane_700nm.png").exists()

@@ -3,7 +3,7 @@ reflectance of the grain material at the half vector normalised to normal incide
 (docs/model.md, "Surface reflectance factor").
 
 Against docs/model.md's reference values and the independent complex-arithmetic oracle
-(tests/reference.py: fresnel_unpolarized, surface_fresnel_factor) in five variants; the
+(tests/oracles/model.py: fresnel_unpolarized, surface_fresnel_factor) in five variants; the
 rest of the BSDF unchanged; sample weights = eval / pdf; gradients against finite
 differences; the bad-input errors; the surface term's energy bound."""
 
@@ -23,7 +23,7 @@ from helpers import (
     sample,
     use_variant,
 )
-from reference import Params, brdf_terms, fresnel_unpolarized, surface_fresnel_factor
+from oracles.model import Params, brdf_terms, fresnel_unpolarized, surface_fresnel_factor
 
 VARIANTS = ["scalar_rgb", "scalar_spectral", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
 #: docs/model.md's reference values: index -> {angle (deg): F}
@@ -289,7 +289,7 @@ def test_fit_and_render_pass_the_option_on(tmp_path, capsys):
     fitted = json.loads((out / "fit.json").read_text())["parameters"]
     assert fitted["surface_fresnel"] == "fresnel"
     assert fitted["amplitude_surface"] == pytest.approx(5e-4, rel=0.2)
-    scene = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"
+    scene = Path(__file__).resolve().parents[2] / "scenes" / "powder_patch.xml"
     capsys.readouterr()
     assert main(["render", str(scene), "-o", str(tmp_path / "r.exr"), "-D", "res_x=16",
                  "-D", "res_y=8", "-D", "spp=1", "--params", str(out / "fit.json")]) == 0

@@ -10,29 +10,29 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import use_variant
+from helpers import hemispherical_reflectance, use_variant
 from mitsuba_powder.cli import main
 from mitsuba_powder.plugin.appearance import colour_of_spectrum, powder_colour
-from test_mie import hematite_nk, mie_ref, rho_ref, tau_o_independent
-from test_physics import hemispherical_reflectance
+from oracles.grains import hematite_nk, mie_albedo, mie_efficiencies, tau_o_trapezoid
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_optical_properties_match_miepython():
     c = powder_colour(0.05, wavelengths_nm=np.arange(400.0, 801.0, 50.0), samples=64)
     for i, w in enumerate(c.wavelengths_nm):
         m = complex(hematite_nk(np.array([w]))[0])
-        assert c.albedo[i] == pytest.approx(rho_ref(m, 0.05, w), rel=2e-4)
-        assert c.q_ext[i] == pytest.approx(mie_ref(m, 2 * np.pi * 0.05 / (w * 1e-3))[0],
+        assert c.albedo[i] == pytest.approx(mie_albedo(m, 0.05, w), rel=2e-4)
+        assert c.q_ext[i] == pytest.approx(mie_efficiencies(m, 2 * np.pi * 0.05 / (w * 1e-3))[0],
                                            rel=2e-4)
-        assert c.tau_o[i] == pytest.approx(tau_o_independent(m.real), rel=1e-5)
+        assert c.tau_o[i] == pytest.approx(tau_o_trapezoid(m.real), rel=1e-5)
     assert c.q_ext2 is None
     assert np.all(np.isnan(c.lab))  # 50 nm steps: no colour
 
 
 def test_reflectance_matches_a_2d_hemispherical_integral():
-    """The helper's 1D quadrature (normal incidence) against the 2D grid of test_physics."""
+    """The helper's 1D quadrature (normal incidence) against the 2D grid of
+    helpers.hemispherical_reflectance."""
     c = powder_colour(0.1, wavelengths_nm=np.array([600.0, 700.0]), extinction=2.0)
     use_variant("llvm_ad_mono")
     bsdf = mi.load_dict({"type": "powder", "radius": 0.1, "extinction": 2.0,
@@ -68,7 +68,7 @@ def test_two_populations_and_variant_restored():
     c = powder_colour(0.083, radius2=0.046, fraction2=0.4,
                       wavelengths_nm=np.array([450.0, 650.0]), samples=32)
     assert mi.variant() == "scalar_rgb"
-    want = [rho_ref(complex(hematite_nk(np.array([w]))[0]), 0.083, w, 0.046, 0.4)
+    want = [mie_albedo(complex(hematite_nk(np.array([w]))[0]), 0.083, w, 0.046, 0.4)
             for w in (450.0, 650.0)]
     np.testing.assert_allclose(c.albedo, want, rtol=2e-4)
     assert c.q_ext2 is not None and len(c.q_ext2) == 2

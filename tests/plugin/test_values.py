@@ -11,40 +11,22 @@ import numpy as np
 import pytest
 
 from helpers import (
-    Albedo,
     channel_wavelengths,
     evaluate,
     is_scalar,
     make_bsdf,
     perturb,
     random_hemisphere,
+    random_params,
     use_variant,
 )
-from reference import LOBES, Params, brdf
+from oracles.model import LOBES, Params, brdf
 
 VARIANTS = ["scalar_rgb", "scalar_spectral", "llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral"]
 N_SETS = 20
 PAIRS_JIT = 10_000       # per parameter set
 PAIRS_SCALAR = 500       # per parameter set: 10,000 over the 20 sets (Python loop)
 RTOL = 1e-4
-
-
-def random_params(rng: np.random.Generator, k: int) -> tuple[Params, Albedo]:
-    p = Params(
-        amplitude_volume=rng.uniform(0.2, 2.0),
-        g=rng.uniform(-0.95, 0.95),
-        extinction=10 ** rng.uniform(-2, 2),
-        tau_o=rng.choice([0.0, rng.uniform(0.0, 20.0), 2.0 / 3.0]),
-        thickness=np.inf if k % 2 == 0 else 10 ** rng.uniform(-1, 2),
-        amplitude_surface=10 ** rng.uniform(-6, -2),
-        correlation_length=10 ** rng.uniform(-1, 0.7),
-        specular="harvey_shack" if k % 3 else "gaussian",
-        sigma=rng.uniform(0.02, 0.5),
-    )
-    rho = rng.uniform(0.0, 1.0, 3)
-    if k % 5 == 0:
-        rho[0] = 1.0  # conservative grains: c0 = 0
-    return p, Albedo(rho)
 
 
 def directions(n: int, p: Params, lam: np.ndarray, rng: np.random.Generator):

@@ -16,9 +16,9 @@ from mitsuba_powder.cli import main
 from mitsuba_powder.fitting.protocols import geometries
 from mitsuba_powder.rendering.furnace import white_furnace
 from mitsuba_powder.rendering.gonio import FLOAT32_U, GonioResult, render_gonio
-from reference import Params, brdf
+from oracles.model import Params, brdf, gonio_directions
 
-SCENE = Path(__file__).resolve().parents[1] / "scenes" / "gonio.xml"
+SCENE = Path(__file__).resolve().parents[2] / "scenes" / "gonio.xml"
 RGB_NM = (611.3, 549.1, 464.3)
 PROPS = {"albedo": {"type": "rgb", "value": [0.85, 0.55, 0.3]}, "extinction": 1.0,
          "tau_o": 2.0 / 3.0}
@@ -56,7 +56,7 @@ def test_analytic_brf_is_model_md():
     the geometry convention of the virtual goniometer is the measurement convention."""
     ti, to, ph = subset()
     r = render_gonio(PROPS, ti, to, ph, variant="llvm_ad_rgb", spp=1, resolution=2)
-    wi, wo = (np.asarray(a) for a in __import__("reference").gonio_directions(ti, to, ph))
+    wi, wo = (np.asarray(a) for a in gonio_directions(ti, to, ph))
     rho = np.tile(np.float32([0.85, 0.55, 0.3]).astype(np.float64), (len(ti), 1))
     lam = np.tile(np.float32(RGB_NM).astype(np.float64), (len(ti), 1))
     want = np.pi * brdf(wi, wo, rho, lam, Params().as_float32())
@@ -330,7 +330,7 @@ def test_batch_images_do_not_leak_into_each_other(guard, monkeypatch):
     from mitsuba_powder.io.measurements import load_measurements
 
     monkeypatch.setattr(gonio, "GUARD_COLUMNS", guard)
-    data = load_measurements(Path(__file__).resolve().parents[1] / "measurements"
+    data = load_measurements(Path(__file__).resolve().parents[2] / "measurements"
                              / "ptfe_germer2017.csv")
     data = data.subset((data.wavelength == 351) & (data.theta_i == 75))
     assert len(data) == 305

@@ -3,64 +3,24 @@ the plugin uses, two grain populations, radius gradients and the optical-constan
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import drjit as dr
-import miepython
 import mitsuba as mi
 import numpy as np
 import pytest
 
 from helpers import SHARED, channel_kind, needs_shared, use_variant
 from mitsuba_powder import _optics
+from oracles.grains import (
+    OPTICAL_CONSTANTS,
+    hematite_nk,
+    mie_albedo,
+    mie_efficiencies,
+    read_yaml_nk,
+    tau_o_trapezoid,
+)
 
-DATA = Path(__file__).resolve().parents[1] / "python" / "mitsuba_powder" / "data" / \
-    "optical_constants"
 SHARED_CONSTANTS = SHARED / "data" / "optical_constants"
 X_GRID = np.logspace(-3, np.log10(200.0), 45)
-
-
-def read_yaml_nk(path: Path) -> np.ndarray:
-    """Independent reader of a refractiveindex.info table: rows (wavelength um, n, k)."""
-    rows, inside = [], False
-    for line in path.read_text().splitlines():
-        if line.strip().startswith("data:"):
-            inside = True
-            continue
-        if inside:
-            parts = line.split()
-            if len(parts) != 3:
-                break
-            rows.append([float(p) for p in parts])
-    return np.array(rows)
-
-
-def hematite_nk(wl_nm: np.ndarray) -> np.ndarray:
-    """Orientation-averaged hematite index n + ik at wavelengths in nm (test reference)."""
-    o = read_yaml_nk(DATA / "hematite_Querry-o.yml")
-    e = read_yaml_nk(DATA / "hematite_Querry-e.yml")
-    wl_um = np.asarray(wl_nm) * 1e-3
-    # the plugin averages on the o grid then interpolates; do the same
-    grid = o[:, 0][(o[:, 0] >= e[0, 0]) & (o[:, 0] <= e[-1, 0])]
-    n_avg = (2 * np.interp(grid, o[:, 0], o[:, 1]) + np.interp(grid, e[:, 0], e[:, 1])) / 3
-    k_avg = (2 * np.interp(grid, o[:, 0], o[:, 2]) + np.interp(grid, e[:, 0], e[:, 2])) / 3
-    return np.interp(wl_um, grid, n_avg) + 1j * np.interp(wl_um, grid, k_avg)
-
-
-def mie_ref(index: complex, x: float) -> tuple[float, float]:
-    """miepython uses n - ik for absorbing spheres."""
-    qext, qsca = miepython.efficiencies_mx(np.conj(index), x)[:2]
-    return float(qext), float(qsca)
-
-
-def rho_ref(index: complex, radius_um: float, wl_nm: float, radius2=None, fraction2=0.0):
-    x1 = 2 * np.pi * radius_um / (wl_nm * 1e-3)
-    e1, s1 = mie_ref(index, x1)
-    if radius2 is None:
-        return s1 / e1
-    e2, s2 = mie_ref(index, 2 * np.pi * radius2 / (wl_nm * 1e-3))
-    w1, w2 = (1 - fraction2) / radius_um, fraction2 / radius2
-    return (w1 * s1 + w2 * s2) / (w1 * e1 + w2 * e2)
 
 
 INDICES = [1.33 + 0j, 1.5 + 0j, 3.0 + 0.1j, 2.9 + 1.5j]
@@ -72,7 +32,7 @@ def test_mie_double_precision_matches_miepython(index):
         index = complex(hematite_nk(np.array([float(index.split()[1])]))[0])
     for x in X_GRID:
         got = _optics.mie_efficiencies(index, float(x))
-        want = mie_ref(index, float(x))
+        want = mie_efficiencies(index, float(x))
         np.testing.assert_allclose(got, want, rtol=1e-6, err_msg=f"m={index}, x={x}")
 
 
@@ -87,7 +47,7 @@ def test_mie_single_precision_values_of_the_plugin(index):
         bsdf = mi.load_dict({"type": "powder", "eta": index.real, "k": index.imag,
                              "radius": r, "wavelength": wl})
         got = [float(bsdf.eval_attribute(name, si)[0][0]) for name in ("q_ext", "q_sca")]
-        np.testing.assert_allclose(got, mie_ref(index, float(x)), rtol=1e-4,
+        np.testing.assert_allclose(got, mie_efficiencies(index, float(x)), rtol=1e-4,
                                    err_msg=f"m={index}, x={x}")
 
 
@@ -100,25 +60,9 @@ def test_tau_o_reference_values():
     assert _optics.tau_o_fresnel(2.9) == pytest.approx(14.304, abs=1e-3)
 
 
-def tau_o_independent(n: float) -> float:
-    """docs/model.md's tau_o by a different quadrature: trapezoid in theta, 2e6 points."""
-    theta = np.linspace(0.0, np.pi / 2, 2_000_001)
-    s = n * np.sin(theta)
-    ci = np.cos(theta)
-    ct = np.sqrt(np.clip(1 - s * s, 0, None))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rs = (n * ci - ct) / (n * ci + ct)
-        rp = (ci - n * ct) / (ci + n * ct)
-    r = np.where(s >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
-    c1 = np.trapezoid(r * ci * np.sin(theta), theta)
-    c2 = np.trapezoid(r * ci**2 * np.sin(theta), theta)
-    rbar = (3 * c2 + 2 * c1) / (3 * c2 - 2 * c1 + 2)
-    return 2 / 3 * (1 + rbar) / (1 - rbar)
-
-
 @pytest.mark.parametrize("n", [1.0, 1.2, 1.33, 1.5, 2.0, 2.5, 2.9, 3.2])
 def test_tau_o_matches_an_independent_integration(n):
-    assert _optics.tau_o_fresnel(n) == pytest.approx(tau_o_independent(n), rel=1e-6)
+    assert _optics.tau_o_fresnel(n) == pytest.approx(tau_o_trapezoid(n), rel=1e-6)
 
 
 @pytest.mark.parametrize("variant", ["scalar_spectral", "llvm_ad_spectral", "llvm_ad_rgb",
@@ -152,7 +96,7 @@ def test_observable_albedo_is_mie(variant, radius):
         mu_i, mu_o = float(wi.z if np.ndim(wi.z) == 0 else wi.z[0]), float(
             wo.z if np.ndim(wo.z) == 0 else wo.z[0])
         rho = 4 * np.pi * (mu_i + mu_o) * value / mu_o / av
-        want = [rho_ref(complex(hematite_nk(np.array([w]))[0]), radius, w) for w in lam]
+        want = [mie_albedo(complex(hematite_nk(np.array([w]))[0]), radius, w) for w in lam]
         np.testing.assert_allclose(rho, want, rtol=2e-4, err_msg=f"{variant} r={radius} {lam}")
 
 
@@ -164,12 +108,12 @@ def test_two_populations_albedo():
     lams = [420.0, 530.0, 640.0, 770.0]
     si.wavelengths = mi.UnpolarizedSpectrum(*lams)
     got = np.array(bsdf.eval_attribute("albedo", si), dtype=np.float64).ravel()
-    want = [rho_ref(complex(hematite_nk(np.array([w]))[0]), r1, w, r2, f2) for w in lams]
+    want = [mie_albedo(complex(hematite_nk(np.array([w]))[0]), r1, w, r2, f2) for w in lams]
     np.testing.assert_allclose(got, want, rtol=1e-4)
     # efficiencies of each population are observable too
     q2 = np.array(bsdf.eval_attribute("q_ext2", si), dtype=np.float64).ravel()
-    want2 = [mie_ref(complex(hematite_nk(np.array([w]))[0]), 2 * np.pi * r2 / (w * 1e-3))[0]
-             for w in lams]
+    want2 = [mie_efficiencies(complex(hematite_nk(np.array([w]))[0]),
+                              2 * np.pi * r2 / (w * 1e-3))[0] for w in lams]
     np.testing.assert_allclose(q2, want2, rtol=1e-4)
 
 
@@ -181,7 +125,7 @@ def test_fresnel_tau_o_is_used_per_wavelength():
     lams = [400.0, 500.0, 600.0, 700.0]
     si.wavelengths = mi.UnpolarizedSpectrum(*lams)
     got = np.array(bsdf.eval_attribute("tau_o", si), dtype=np.float64).ravel()
-    want = [tau_o_independent(hematite_nk(np.array([w]))[0].real) for w in lams]
+    want = [tau_o_trapezoid(hematite_nk(np.array([w]))[0].real) for w in lams]
     np.testing.assert_allclose(got, want, rtol=1e-5)
     # an explicit tau_o overrides Fresnel and becomes a traversed parameter
     bsdf = mi.load_dict({"type": "powder", "tau_o": 3.0})
@@ -211,8 +155,8 @@ def test_multiple_scattering_at_exact_wavelengths(variant):
         got = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*[float(v) for v in wo])),
                        dtype=np.float64).ravel()
         index = hematite_nk(lam)
-        rho = np.array([rho_ref(complex(m), radius, w) for m, w in zip(index, lam)])
-        tau = np.array([tau_o_independent(m.real) for m in index])
+        rho = np.array([mie_albedo(complex(m), radius, w) for m, w in zip(index, lam)])
+        tau = np.array([tau_o_trapezoid(m.real) for m in index])
         c0 = np.sqrt(3 * (1 - rho) * (1 - rho * g))
         s = (1 - np.exp(-2 * c0 * tau)) / (2 * c0)
         l2 = 3 * rho**2 * (s + mu_i * mu_o / (mu_i + mu_o)) / ((1 + c0 * mu_i) * (1 + c0 * mu_o))
@@ -326,7 +270,7 @@ def test_loader_reads_a_good_file_and_the_plugin_uses_it(tmp_path):
     bsdf = mi.load_dict({"type": "powder", "material": str(path), "wavelength": 450.0,
                          "radius": 0.1})
     got = float(bsdf.eval_attribute("albedo", dr.zeros(mi.SurfaceInteraction3f, 1))[0][0])
-    assert got == pytest.approx(rho_ref(2.55 + 0.4j, 0.1, 450.0), rel=1e-4)
+    assert got == pytest.approx(mie_albedo(2.55 + 0.4j, 0.1, 450.0), rel=1e-4)
 
 
 @needs_shared(SHARED_CONSTANTS)
@@ -341,7 +285,7 @@ def test_original_files_with_known_defects_are_rejected(name, line):
 @pytest.mark.parametrize("name", ["hematite_Querry-o.yml", "hematite_Querry-e.yml",
                                   "magnetite_Querry.yml"])
 def test_bundled_files_load_and_match_an_independent_reader(name):
-    wl, n, k = (np.array(v) for v in _optics.load_optical_constants(str(DATA / name)))
-    ref = read_yaml_nk(DATA / name)
+    wl, n, k = (np.array(v) for v in _optics.load_optical_constants(str(OPTICAL_CONSTANTS / name)))
+    ref = read_yaml_nk(OPTICAL_CONSTANTS / name)
     np.testing.assert_array_equal(np.stack([wl, n, k], 1), ref)
     assert wl[0] <= 0.36 and wl[-1] >= 0.83

@@ -8,7 +8,17 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import evaluate, random_hemisphere, sample, use_variant
+from helpers import (
+    adapters,
+    assert_updates_reuse_kernels,
+    direction,
+    evaluate,
+    gradients_and_differences,
+    load_and_capture,
+    random_hemisphere,
+    sample,
+    use_variant,
+)
 
 LAMBDA_UM = 0.7
 K0 = 2.0 * np.pi / LAMBDA_UM  # 1/um, mono variants at 700 nm
@@ -38,9 +48,10 @@ def reflectance(bsdf, theta_i: float) -> float:
 
 
 def test_reference_quadrature_matches_a_midpoint_grid():
-    """The cone-resolving quadrature agrees with test_physics's midpoint grid of the
-    projected disc (an independent scheme) where the latter is accurate (broad cone)."""
-    from test_physics import hemispherical_reflectance as midpoint
+    """The cone-resolving quadrature agrees with the midpoint grid of the projected disc
+    (helpers.hemispherical_reflectance, an independent scheme) where the latter is accurate
+    (broad cone)."""
+    from helpers import hemispherical_reflectance as midpoint
 
     use_variant("llvm_ad_mono")
     bsdf = mi.load_dict(white_powder(1.0, 0.3, 1.0, "paper"))
@@ -176,32 +187,6 @@ def test_scalar_and_llvm_tables_agree(variants):
     np.testing.assert_allclose(out[0], out[1], rtol=2e-4, atol=0.0)
 
 
-class LogCapture(mi.Appender):
-    """A Mitsuba log appender that keeps (level, text) of every message."""
-
-    def __init__(self):
-        super().__init__()
-        self.messages: list[tuple[mi.LogLevel, str]] = []
-
-    def append(self, level, text):
-        self.messages.append((level, text))
-
-    def log_progress(self, *args, **kwargs):
-        pass
-
-
-def load_and_capture(props: dict) -> list[str]:
-    """Warnings logged while loading ``props``."""
-    logger = mi.logger()
-    cap = LogCapture()
-    logger.add_appender(cap)
-    try:
-        mi.load_dict(props)
-    finally:
-        logger.remove_appender(cap)
-    return [t for lvl, t in cap.messages if lvl == mi.LogLevel.Warn]
-
-
 @pytest.mark.parametrize("variant,extra,lam_nm", [
     ("llvm_ad_mono", {"wavelength": 700.0}, 700.0),
     ("llvm_ad_rgb", {"rgb_wavelengths": "611.3, 549.1, 464.3"}, 611.3),
@@ -264,7 +249,6 @@ def test_eval_pdf_and_sample_weights_in_conserving_mode(props, lowered):
 
 def test_chi2_in_conserving_mode(tmp_path, monkeypatch):
     from mitsuba.chi2 import ChiSquareTest, SphericalDomain
-    from test_sampling import adapters, direction
 
     monkeypatch.chdir(tmp_path)
     use_variant("llvm_ad_rgb")
@@ -281,8 +265,6 @@ def test_gradients_in_conserving_mode(case):
     """AD through the tabulated N against central finite differences, below the cap
     (A_v R_L < 1), on it (A_v R_L > 1 in some channels, where A_v no longer changes the
     volume part) and with the Mie albedo (gradients of the radius through N)."""
-    from test_autodiff import gradients_and_differences
-
     use_variant("llvm_ad_rgb")
     capped = case == "capped"
     props = {"type": "powder", "albedo": {"type": "rgb", "value": [0.9, 0.7, 0.5]},
@@ -302,8 +284,6 @@ def test_gradients_in_conserving_mode(case):
 def test_conserving_updates_reuse_kernels():
     """The table of N is rebuilt on every update from opaque parameters: after a first
     update no new kernel is compiled (paper mode's property, tested in test_autodiff)."""
-    from test_autodiff import assert_updates_reuse_kernels
-
     use_variant("llvm_ad_rgb")
     bsdf = mi.load_dict({"type": "powder", "albedo": {"type": "rgb", "value": [0.9, 0.7, 0.5]},
                          "g": 0.3, "extinction": 2.0, "tau_o": 1.5, "thickness": 0.3,

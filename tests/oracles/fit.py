@@ -1,10 +1,10 @@
 """Independent multi-start least-squares fit of docs/model.md's BRDF at one wavelength (test-only).
 
-The reference the project's fitter (``mitsuba_powder.fitting.fit``) is judged against (issue 10): it
-shares no code with the product. The model is :func:`reference.brdf` (NumPy float64, docs/model.md's
-equations written independently of the C++ plugin), ``tau_o`` comes from this module's own
-Fresnel quadrature (:func:`tau_o_fresnel`, docs/model.md "Extrapolation ratio tau_o"), and the
-optimiser is ``scipy.optimize.least_squares`` (trust-region reflective, finite-difference
+The reference the project's fitter (``mitsuba_powder.fitting.fit``) is judged against: it shares
+no code with the product. The model is :func:`oracles.model.brdf` (NumPy float64, docs/model.md's
+equations written independently of the C++ plugin), ``tau_o`` comes from the adaptive Fresnel
+quadrature :func:`oracles.grains.tau_o_fresnel` (docs/model.md "Extrapolation ratio tau_o"), and
+the optimiser is ``scipy.optimize.least_squares`` (trust-region reflective, finite-difference
 Jacobian) polishing every point of a scrambled Sobol design over the (log-)bounds.
 
 Free parameters (docs/model.md names): ``amplitude_volume`` A_v, ``g``, ``extinction`` kappa (1/um),
@@ -23,11 +23,11 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy import integrate
 from scipy.optimize import least_squares
 from scipy.stats import qmc
 
-from reference import Params, brdf, gonio_directions
+from oracles.grains import tau_o_fresnel
+from oracles.model import Params, brdf, gonio_directions
 
 #: Free parameters in fit order: (lower, upper, optimised on a log10 scale). The same bounds as
 #: the plugin fitter's ``FITTABLE`` (python/mitsuba_powder/fitting/fit.py).
@@ -47,60 +47,9 @@ AGREE_RTOL = 0.01
 AGREE_ATOL = 1e-12
 
 
-def fresnel_inside(cos_theta: np.ndarray, n: float) -> np.ndarray:
-    """Unpolarised Fresnel reflectance for light inside a medium of real index ``n`` hitting
-    the boundary with air at incidence ``theta`` (1 beyond the critical angle).
-
-    Args:
-        cos_theta: cosine of the incidence angle inside the medium, in [0, 1].
-        n: real refractive index of the medium (>= 1).
-
-    Returns:
-        R(theta), same shape as ``cos_theta``.
-    """
-    cos_i = np.asarray(cos_theta, dtype=np.float64)
-    sin_t2 = n * n * (1.0 - cos_i * cos_i)  # Snell: sin(theta_t) = n sin(theta_i)
-    total = sin_t2 >= 1.0
-    cos_t = np.sqrt(np.clip(1.0 - sin_t2, 0.0, 1.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r_s = (n * cos_i - cos_t) / (n * cos_i + cos_t)
-        r_p = (cos_i - n * cos_t) / (cos_i + n * cos_t)
-    r = 0.5 * (r_s * r_s + r_p * r_p)
-    return np.where(total, 1.0, np.nan_to_num(r, nan=1.0))
-
-
-def fresnel_moments(n: float) -> tuple[float, float]:
-    """C_1 and C_2 of docs/model.md: ``C_j = int_0^{pi/2} R(theta) cos^j(theta) sin(theta) dtheta``,
-    integrated with adaptive quadrature split at the critical angle (where R has a kink);
-    beyond it R = 1 and the integral is closed-form, ``cos^{j+1}(theta_c) / (j + 1)``."""
-    if not (math.isfinite(n) and n >= 1.0):
-        raise ValueError(f"eta (real refractive index) must be a finite number >= 1, got {n}")
-    theta_c = math.asin(1.0 / n)
-    moments = []
-    for j in (1, 2):
-        inside, _ = integrate.quad(
-            lambda t, j=j: float(fresnel_inside(math.cos(t), n)) * math.cos(t) ** j * math.sin(t),
-            0.0, theta_c, epsabs=1e-13, epsrel=1e-12, limit=200)
-        moments.append(inside + math.cos(theta_c) ** (j + 1) / (j + 1))
-    return moments[0], moments[1]
-
-
-def rbar_fresnel(n: float) -> float:
-    """Rbar = (3 C2 + 2 C1) / (3 C2 - 2 C1 + 2) (docs/model.md Eq. 11, Zhu, Pine and Weitz 1991)."""
-    c1, c2 = fresnel_moments(n)
-    return (3.0 * c2 + 2.0 * c1) / (3.0 * c2 - 2.0 * c1 + 2.0)
-
-
-def tau_o_fresnel(n: float) -> float:
-    """Extrapolation ratio tau_o = (2/3) (1 + Rbar) / (1 - Rbar) for grains of real index ``n``
-    (dimensionless; 2/3 at n = 1)."""
-    r = rbar_fresnel(n)
-    return (2.0 / 3.0) * (1.0 + r) / (1.0 - r)
-
-
 def model_brf(theta_i, theta_o, phi, wavelength_nm: float, values: dict[str, float],
               tau_o: float) -> np.ndarray:
-    """BRF = pi * BRDF of :func:`reference.brdf` at gonio geometries (docs/model.md convention).
+    """BRF = pi * BRDF of :func:`oracles.model.brdf` at gonio geometries (docs/model.md convention).
 
     Args:
         theta_i, theta_o, phi: incidence, signed viewing angle and azimuth (degrees), (N,).

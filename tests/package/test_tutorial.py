@@ -5,7 +5,7 @@ lines under it) is a line of what the command printed, times in seconds aside. R
 example runs too. So the pages cannot drift from what the commands do.
 
 Small sizes: the showcase script gets ``--spp 2 --res 96x30`` (its figure is tested at that
-size in tests/test_docs_scripts.py)."""
+size in tests/package/test_docs_scripts.py)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: extra arguments that make a command small (command prefix -> arguments appended)
 SMALL = {"python docs/scripts/showcase.py": "--spp 2 --res 96x30"}
 #: a time in seconds, which varies from run to run and machine to machine

@@ -8,7 +8,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import evaluate, random_hemisphere, sample, use_variant
+from helpers import adapters, direction, evaluate, random_hemisphere, sample, use_variant
 
 VARIANT = "llvm_ad_rgb"
 MEAN_RGB_LAMBDA_UM = (611.3 + 549.1 + 464.3) / 3e3
@@ -83,45 +83,6 @@ class AngularPeakDomain(ProjectedPeakDomain):
         wo = self.m * ct + (self.frame.s * c + self.frame.t * s) * st
         jac = dr.select((wo.z > 0.0) & (theta < dr.pi), st * self.b * self.L * e, 0.0)
         return wo, jac
-
-
-def adapters(props: dict, wi, domain=None, wavelengths=None, zero_weight_fails=False):
-    """(sample_func, pdf_func) for mitsuba.chi2; ``wavelengths`` (nm, 4 values) for
-    spectral variants. With ``zero_weight_fails`` a sample of weight 0 (in every channel)
-    counts as failed, i.e. is left out of the histogram like one of pdf 0."""
-    bsdf = mi.load_dict({"type": "powder", **props})
-    ctx = mi.BSDFContext()
-
-    def si_for(n):
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.wi = wi
-        if wavelengths is not None:
-            si.wavelengths = mi.UnpolarizedSpectrum(*wavelengths)
-        return si
-
-    def sample_func(s):
-        n = dr.width(s)
-        bs, weight = bsdf.sample(ctx, si_for(n), s[0], mi.Point2f(s[1], s[2]))
-        # A sample fails when its pdf is 0 (off the disc); a valid sample may still have a
-        # zero weight where f underflows. Failed samples are kept inside the domain.
-        failed = bs.pdf <= 0.0
-        if zero_weight_fails:
-            failed |= dr.all(mi.unpolarized_spectrum(weight) == 0.0)
-        wo = dr.select(failed, mi.Vector3f(wi), bs.wo)
-        return wo, mi.Float(dr.select(failed, 0.0, 1.0))
-
-    def pdf_func(p):
-        if domain is None:
-            return bsdf.pdf(ctx, si_for(dr.width(p)), p)
-        wo, jac = domain.direction(p)
-        return bsdf.pdf(ctx, si_for(dr.width(p.x)), wo) * jac
-
-    return sample_func, pdf_func
-
-
-def direction(theta_deg: float):
-    t = np.radians(theta_deg)
-    return mi.ScalarVector3f(float(np.sin(t)), 0.0, float(np.cos(t)))
 
 
 # (name, properties, incidence in degrees, peak-centred domain scale or None)

@@ -527,7 +527,7 @@ def test_conventions_figure_script(tmp_path):
     import subprocess
     import sys
 
-    script = Path(__file__).resolve().parents[1] / "docs" / "scripts" / "ipag_conventions.py"
+    script = Path(__file__).resolve().parents[2] / "docs" / "scripts" / "ipag_conventions.py"
     proc = subprocess.run([sys.executable, str(script), "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from helpers import ALL_VARIANTS, Albedo, channel_wavelengths, evaluate, make_bsdf, use_variant
-from reference import Params, brdf
+from oracles.model import Params, brdf
 
 
 def test_every_wheel_variant_is_covered():

@@ -12,7 +12,7 @@ import pytest
 
 from helpers import use_variant
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # the plugin's source: powder.cpp (the doc comment), its headers (the parameter table, parsing)
 SOURCE = "\n".join(p.read_text() for p in sorted((ROOT / "src" / "bsdfs").glob("powder*")))
 DOCS = (ROOT / "docs" / "powder.md").read_text()

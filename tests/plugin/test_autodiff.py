@@ -8,7 +8,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import perturb, random_hemisphere, use_variant
+from helpers import (
+    assert_updates_reuse_kernels,
+    geometry,
+    gradients_and_differences,
+    loss,
+    use_variant,
+)
 
 VARIANT = "llvm_ad_rgb"
 
@@ -26,64 +32,6 @@ CASES = {
     "harvey_shack": {**BASE, "correlation_length": 1.5},
     "gaussian": {**BASE, "specular": "gaussian", "amplitude_surface": 0.5, "sigma": 0.15},
 }
-
-
-def geometry(n: int = 3000, spectral: bool = False):
-    """Direction pairs (a third near back-scattering, a third near the mirror direction) and
-    loss weights; spectral: four random wavelengths per lane (nm)."""
-    rng = np.random.default_rng(21)
-    wi = random_hemisphere(n, rng, 0.1)
-    wo = random_hemisphere(n, rng, 0.1)
-    wo[: n // 3] = perturb(wi[: n // 3], 0.05, rng)
-    wo[n // 3: 2 * n // 3] = perturb(wi[n // 3: 2 * n // 3] * [-1, -1, 1], 0.1, rng)
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(*[wi[:, k].astype(np.float32) for k in range(3)])
-    wov = mi.Vector3f(*[wo[:, k].astype(np.float32) for k in range(3)])
-    weights = mi.Float(np.linspace(0.5, 1.5, n).astype(np.float32))
-    if spectral:
-        lam = np.random.default_rng(3).uniform(360.0, 830.0, (4, n)).astype(np.float32)
-        si.wavelengths = mi.UnpolarizedSpectrum(*[mi.Float(row) for row in lam])
-    return si, wov, weights
-
-
-def loss(bsdf, si, wo, weights):
-    """sum of weights x (channel 1 + 2 channel 2 + 3 channel 3 [+ 4 channel 4])"""
-    value = bsdf.eval(mi.BSDFContext(), si, wo)
-    return dr.sum(weights * sum((c + 1.0) * value[c] for c in range(len(value))))
-
-
-def loss_value(bsdf, si, wo, weights) -> float:
-    """Loss accumulated in float64 (for finite differences)."""
-    value = np.array(bsdf.eval(mi.BSDFContext(), si, wo), dtype=np.float64)
-    w = np.array(weights, dtype=np.float64)
-    return float(np.sum(w * sum((c + 1.0) * value[c] for c in range(len(value)))))
-
-
-def scalar_keys(params) -> list[tuple[str, int | None]]:
-    keys = []
-    for key in params.keys():
-        v = params[key]
-        if isinstance(v, mi.Float):
-            keys.append((key, None))
-        else:  # Color3f
-            keys.extend((key, c) for c in range(3))
-    return keys
-
-
-def get_scalar(params, key: str, comp: int | None) -> float:
-    v = params[key]
-    return float(v[comp][0]) if comp is not None else float(v[0])
-
-
-def set_scalar(params, key: str, comp: int | None, x: float) -> None:
-    """Set a Float parameter, or one component of a Color3f parameter, and update."""
-    if comp is None:
-        params[key] = mi.Float(x)
-    else:
-        c = [float(params[key][i][0]) for i in range(3)]
-        c[comp] = x
-        params[key] = mi.Color3f(*c)
-    params.update()
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -145,36 +93,6 @@ def test_masked_lanes_add_no_gradient(case, g):
         assert np.allclose(grads[1], grads[0], rtol=1e-5, atol=0.0), (case, g, key, grads)
 
 
-def gradients_and_differences(bsdf, params, keys=None, spectral: bool = False,
-                              steps: dict[str, float] | None = None):
-    """Per scalar parameter (all, or the Float parameters ``keys``): (key, component, AD
-    gradient of the loss, central finite difference with a relative step of 1 % or
-    ``steps[key]``, (loss at x0 + h, x0))."""
-    si, wo, weights = geometry(spectral=spectral)
-    steps = steps or {}
-    out = []
-    for key, comp in (scalar_keys(params) if keys is None else [(k, None) for k in keys]):
-        # analytic gradient
-        dr.enable_grad(params[key])
-        params.update()
-        dr.backward(loss(bsdf, si, wo, weights))
-        grad = dr.grad(params[key])
-        grad = float(grad[comp][0] if comp is not None else grad[0])
-        dr.disable_grad(params[key])
-        params.update()
-
-        # central finite difference
-        x0 = get_scalar(params, key, comp)
-        h = steps.get(key, 1e-2) * abs(x0)
-        vals = []
-        for x in (x0 + h, x0 - h):
-            set_scalar(params, key, comp, x)
-            vals.append(loss_value(bsdf, si, wo, weights))
-        set_scalar(params, key, comp, x0)
-        out.append((key, comp, grad, (vals[0] - vals[1]) / (2 * h), (vals[0], x0)))
-    return out
-
-
 def test_radius_update_with_gradients_reuses_kernels():
     """An optimiser step on the grain radius (gradients tracked, Mie tangents attached) must
     not compile new kernels either."""
@@ -214,32 +132,7 @@ def test_parameter_update_reuses_kernels():
                                         ("amplitude_volume", 0.8)])
 
 
-def assert_updates_reuse_kernels(bsdf, updates: list[tuple[str, float]]) -> None:
-    """After a first evaluation, each update of a parameter through mi.traverse (``updates``:
-    key, value) evaluates with cached kernels only."""
-    params = mi.traverse(bsdf)
-    si, wo, weights = geometry(1000)
-
-    def run():
-        dr.eval(loss(bsdf, si, wo, weights))
-
-    run()  # compile once
-    dr.kernel_history_clear()
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        for key, value in updates:
-            params[key] = mi.Float(value)
-            params.update()
-            run()
-        history = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert history, "no kernel ran"
-    assert all(h.get("cache_hit", False) for h in history), [
-        (h.get("cache_hit"), h.get("operation_count")) for h in history]
-
-
-#: spectral paths of the volume constants (tests/test_fast_paths.py): computed once per
+#: spectral paths of the volume constants (tests/plugin/test_fast_paths.py): computed once per
 #: parameter change (one-number albedo, tau_o given; or optically thick, with g = 0.3:
 #: 2 c0 tau_o >= 14.1), or tabulated on the 1 nm grid (4 or 8 values per record; albedo 0.8:
 #: 2 c0 tau_o >= 11.3; 100 nm grains: >= 10.9; or, optically thick, rho alone: 50 nm grains,

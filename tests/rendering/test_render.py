@@ -12,7 +12,7 @@ from helpers import use_variant
 from mitsuba_powder import variants
 from mitsuba_powder.cli import main
 
-SCENE = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"
+SCENE = Path(__file__).resolve().parents[2] / "scenes" / "powder_patch.xml"
 
 
 def read_exr(path: Path) -> np.ndarray:

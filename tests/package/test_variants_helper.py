@@ -13,7 +13,7 @@ import mitsuba_powder
 from mitsuba_powder.rendering.render import render_scene
 from mitsuba_powder.variants import check_variant, set_variant, use_variant
 
-SCENE = Path(__file__).resolve().parents[1] / "scenes" / "powder_patch.xml"
+SCENE = Path(__file__).resolve().parents[2] / "scenes" / "powder_patch.xml"
 
 
 @pytest.fixture
