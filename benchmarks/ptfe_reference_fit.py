@@ -1,7 +1,7 @@
 """Independent reference fit of NIST PTFE: the best loss the product's fitter must reach.
 
 The measured sintered PTFE BRF (measurements/ptfe_germer2017.csv, Germer 2017) at 351, 532,
-633 and 1064 nm is fitted by tests/reference_fit.py (NumPy float64 model of docs/model.md +
+633 and 1064 nm is fitted by tests/oracles/fit.py (NumPy float64 model of docs/model.md +
 scipy least_squares from a 60-point Sobol design; no code of the product): free A_v, g,
 extinction, albedo, A_s', l_c; eta = 1.35, k = 0; Harvey-Shack; infinite thickness; plain sum of
 squares of BRF residuals. Prints a table, writes benchmarks/results/ptfe_reference.json (per

@@ -177,7 +177,7 @@ Dry powder (:monosp:`powder`)
      (Default: ``611.3, 549.1, 464.3``)
 
 The float parameters and their defaults and ranges are those of the table
-``powder_param::Table`` (powder_registry.h; tests/test_params_doc.py compares the two). Those
+``powder_param::Table`` (powder_registry.h; tests/plugin/test_params_doc.py compares the two). Those
 marked |texture| may be any Mitsuba texture of one channel (e.g. a ``bitmap`` with
 ``raw=true``), evaluated at ``si.uv``: every value it holds is checked against the
 range at load and after ``mi.traverse`` edits (its ``<name>.data``), and a
@@ -675,7 +675,7 @@ private:
      * finite for finite x and y components); the values of those lanes are
      * meaningless, and the callers (eval, eval_pdf_impl) set them to 0 after the
      * cosine factor, which also keeps them out of every gradient
-     * (tests/test_autodiff.py). Only the cosines: a select of the x and y components
+     * (tests/plugin/test_autodiff.py). Only the cosines: a select of the x and y components
      * with the mask compiles to masked loads, which wait for the cosines' loads and
      * the comparison, a cost on batches beyond the caches.
      */

@@ -23,7 +23,7 @@ constexpr float ExpNegCut2 = 64.f;
  * coherent term below saturation, finite thickness) and of the sampling densities.
  * JIT variants: -t = n + f with n the nearest integer and |f| <= 1/2, 2^f from the
  * degree-6 polynomial of Cephes' exp2f, 2^n from the exponent bits; within 3 ulp
- * of dr::exp2 at the same argument (tests/test_fast_paths.py), in 19 operations of the
+ * of dr::exp2 at the same argument (tests/plugin/test_fast_paths.py), in 19 operations of the
  * LLVM kernel where dr::exp takes 22 (it also handles overflow, which these arguments
  * cannot reach). Scalar variants, and
  * arguments that carry gradients (Dr.Jit's exact derivative rule), call dr::exp2.

@@ -67,7 +67,7 @@ inline std::string range_error(const char *name, double value, const Range &r) {
  * The float parameters of the model (docs/model.md, "Parameters"). One row each drives
  * reading the property (default, range), the range check after an edit through
  * mi.traverse (parameters_changed), the traversal key and whether it is
- * differentiable; tests/test_params_doc.py checks that the doc comment above the
+ * differentiable; tests/plugin/test_params_doc.py checks that the doc comment above the
  * class and docs/powder.md list the same names, defaults and ranges.
  */
 struct Spec {

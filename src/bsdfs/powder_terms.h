@@ -3,7 +3,7 @@
 /*
  * The terms of the model (docs/model.md, Eq. 9, 10, 20-22), one function each, as
  * templates over Dr.Jit types (scalar or JIT; Spectrum: one value per channel), in the
- * order of tests/reference.py: s(c), the Henyey-Greenstein phase function with L1, the
+ * order of tests/oracles/model.py: s(c), the Henyey-Greenstein phase function with L1, the
  * volume constant c0, L2, C and the two surface terms S. The BSDF composes them into
  * Eq. 23 (powder.cpp, eval_brdf); none reads the plugin's state.
  */

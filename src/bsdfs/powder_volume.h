@@ -50,7 +50,7 @@ inline const char *describe(VolumePath p) {
  * s(c) = 1 / (2 c), so that neither L2 nor C depends on tau_o, the volume constants are
  * the same for every wavelength and computed once per parameter change, and eval reads
  * no table and skips the exponential of C. L2 and C change by at most 3.8e-6 relative
- * (tests/test_fast_paths.py); their derivatives with respect to the albedo and g by at
+ * (tests/plugin/test_fast_paths.py); their derivatives with respect to the albedo and g by at
  * most x0 exp(-x0). The same holds for an albedo from the grain tables (table_thickness
  * bounds x0 over every interval of the 1 nm grid): the table then holds rho alone.
  */
@@ -179,7 +179,7 @@ template <typename Float, typename Spectrum> struct PowderVolume {
      * tau_o, which neither L2 nor C then reads, its smallest value in `uniform`). rho and
      * tau_o are interpolated linearly in wavelength, c0 computed from rho; s(c0) is
      * interpolated instead of recomputed (L2 differs by 2.3e-5 relative for a Mie albedo of
-     * 100 nm grains, 7.7e-5 for a mix with 300 nm grains, tests/test_fast_paths.py): eval
+     * 100 nm grains, 7.7e-5 for a mix with 300 nm grains, tests/plugin/test_fast_paths.py): eval
      * then computes no exponential and no division for it. Differentiable. Returns the
      * path; `x0` receives a lower bound of 2 c0 tau_o over the interpolated values.
      */

@@ -143,7 +143,7 @@ class BatchBRF:
     are gathered per lane. The albedo is a number per set and wavelength, given to the plugin as a
     one-texel-per-value ``bitmap``; ``tau_o`` is given per lane (from the grain material, or
     per set when it is fitted). Values equal a ``llvm_ad_mono`` instance at the row's
-    wavelength (``tests/test_fit.py``).
+    wavelength (``tests/fitting/test_fit.py``).
 
     Args:
         data: the geometries and wavelengths.

@@ -13,7 +13,7 @@ wavelengths without building a plugin instance (or switching Mitsuba variants) f
   grain models ``sphere``, ``agglomerate`` and ``slab``, one or two populations);
 - ``tau_o`` from the Fresnel reflectance at Re(index).
 
-``tests/test_fit.py`` checks every value against the plugin's ``eval_attribute``.
+``tests/fitting/test_fit.py`` checks every value against the plugin's ``eval_attribute``.
 Units: wavelengths in nm, radii in micrometres.
 """
 

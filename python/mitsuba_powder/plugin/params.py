@@ -8,7 +8,7 @@ from pathlib import Path
 from ..outputs import note_input
 
 #: Every property the ``powder`` plugin's constructor reads (its doc comment's parameter table;
-#: tests/test_params_doc.py checks that the two lists agree)
+#: tests/plugin/test_params_doc.py checks that the two lists agree)
 POWDER_PROPERTIES = (
     "amplitude_volume", "g", "extinction", "radius", "radius2", "fraction2", "grains",
     "agglomerate_radius", "agglomerate_fill", "mixing", "material", "eta", "k", "albedo",
