@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import MeasurementError, Measurements, _check_range
+from .dataset import MeasurementError, Measurements, _check_column_range
 from .ipag_angles import decide_convention, to_project
 from .ipag_text import (
     _COLUMN,
@@ -414,7 +414,7 @@ def _check_geometries(raw: _Raw, geo: np.ndarray, g: np.ndarray, conv: str) -> N
         if len(sel):
             t = to_project(*geo[k], conv)
             for name, value in zip(("theta_i", "theta_o", "phi"), t):
-                _check_range(name, float(value), f"{raw.geometry_where[k]} [{conv} "
+                _check_column_range(name, float(value), f"{raw.geometry_where[k]} [{conv} "
                              f"convention: incidence {geo[k, 0]:g}, emergence {geo[k, 1]:g}, "
                              f"azimuth {geo[k, 2]:g}]")
 
