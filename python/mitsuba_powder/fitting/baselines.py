@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._checks import check_range
 from ..io.measurements import Measurements
 from .optimise import ParamSpec, finite_difference_jacobian, multistart, sobol_starts
 
@@ -238,8 +239,7 @@ def fit_baseline(model: str, data: Measurements, starts: int = 32, seed: int = 0
     by central differences."""
     if model not in MODELS:
         raise ValueError(f"unknown model {model!r}; models: {', '.join(MODELS)}")
-    if starts < 1:
-        raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
+    check_range("starts", starts, 1)
     func, specs = MODELS[model]
     wi_all, wo_all = data.directions()
     weights = 1.0 / data.sigma if data.sigma is not None else np.ones(len(data))

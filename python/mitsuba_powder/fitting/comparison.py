@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._checks import check_range
 from ..io.measurements import Measurements
 from ..outputs import output_path
 from .baselines import MODELS, fit_baseline
@@ -39,8 +40,7 @@ def compare_models(data: Measurements, free: list[str] | None = None,
     (:func:`surface_fresnel_settings`), each in the EBS regime (kappa/k0 <= 0.25) and, as a
     row of its own where the optimum differs, with the bound lifted (``... (free
     regime)``)."""
-    if starts < 1:
-        raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
+    check_range("starts", starts, 1)
     rows = []
     for lam in data.wavelengths():
         d = data.subset(data.wavelength == lam)

@@ -8,6 +8,10 @@ Jacobian by forward-mode AD (one pass per property over the same traced graph). 
 albedo comes from the plugin's Mie theory (:mod:`~mitsuba_powder.plugin.grains`), with its
 radius derivatives.
 
+The problem (:class:`~mitsuba_powder.fitting.problem.Problem`, its variables in
+:mod:`mitsuba_powder.fitting.variables`) is what the optimiser minimises; this module runs the
+fit and reads the result.
+
 Strategy (:mod:`mitsuba_powder.fitting.optimise`): a scrambled Sobol design of starts over the
 (log-)bounds; with the radius free, the radius of the starts runs over a log grid of the whole
 range (rho(r) from Mie theory has several branches) and is held during the global phase; all
@@ -37,45 +41,32 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._checks import check_range
 from ..io.measurements import Measurements
-from ..plugin.brf import (
-    VARIANT,
-    BatchBRF,
-    PowderBRF,
-    batch_variant,
-    engine_properties,
-)
-from ..plugin.grains import DEFAULT_FILL, GRAIN_VARIABLES, GrainOptics
+from ..plugin.brf import VARIANT, PowderBRF, batch_variant
+from ..plugin.grains import GRAIN_VARIABLES, GrainOptics
 from ..variants import use_variant
-from .optimise import AGREEMENT, MultistartResult, ParamSpec, multistart, sobol_starts
+from .optimise import AGREEMENT, MultistartResult, multistart, sobol_starts
+from .problem import DEFAULT_RADIUS, GRAIN_SETTINGS, Problem
+from .variables import EBS_KAPPA_OVER_K0, FITTABLE, REGIMES
 
-FITTABLE: dict[str, ParamSpec] = {
-    # A_v stays near 1 for real powders (docs/model.md); a wide range opens a degenerate valley
-    # where a tiny albedo (small grains) is traded against a huge A_v
-    "amplitude_volume": ParamSpec(0.05, 5.0, True, 1.0),
-    "g": ParamSpec(-0.95, 0.95, False, 0.0),
-    "extinction": ParamSpec(1e-3, 1e3, True, 1.0),
-    "radius": ParamSpec(3e-3, 3.0, True, 0.05),
-    "radius2": ParamSpec(3e-3, 3.0, True, 0.5),
-    "fraction2": ParamSpec(0.0, 1.0, False, 0.5),
-    "agglomerate_radius": ParamSpec(1e-2, 3.0, True, 0.15),
-    "agglomerate_fill": ParamSpec(0.05, 1.0, False, DEFAULT_FILL),
-    "albedo": ParamSpec(0.0, 1.0, False, 0.8),
-    "tau_o": ParamSpec(1e-2, 1e2, True, 2.0 / 3.0),
-    "thickness": ParamSpec(1e-2, 1e4, True, 100.0),
-    "amplitude_surface": ParamSpec(1e-9, 0.1, True, 1e-5),
-    "correlation_length": ParamSpec(1e-2, 1e2, True, 1.0),
-    "sigma": ParamSpec(1e-3, 1.5, True, 0.1),
-}
-
-#: The plugin's default radius (um), used when neither fitted nor given
-DEFAULT_RADIUS = 0.017
-
-#: Grain properties (:data:`~mitsuba_powder.plugin.grains.GRAIN_VARIABLES`) set the albedo
-#: through the grain model; they are held in the global phase
-
-#: Properties that only configure the grain model (not fitted)
-GRAIN_SETTINGS = ("grains", "mixing")
+__all__ = [
+    "DEFAULT_FREE",
+    "DEFAULT_FREE_ONE_WAVELENGTH",
+    "DEFAULT_POLISH",
+    "DEFAULT_RADIUS",
+    "DEFAULT_STARTS",
+    "EBS_KAPPA_OVER_K0",
+    "FITTABLE",
+    "GRAIN_SETTINGS",
+    "REGIMES",
+    "FitResult",
+    "Problem",
+    "default_free",
+    "fit",
+    "predict",
+    "radius_branches",
+]
 
 #: Radii of the log grid the global phase holds the radius at (every Mie branch is tried)
 PROFILE_RADII = 32
@@ -91,13 +82,6 @@ DEFAULT_FREE = ["amplitude_volume", "g", "extinction", "radius", "amplitude_surf
 #: One wavelength: the albedo instead of the radius, which rho(r) does not determine
 DEFAULT_FREE_ONE_WAVELENGTH = ["amplitude_volume", "g", "extinction", "albedo",
                                "amplitude_surface", "correlation_length"]
-
-#: Enhanced back-scattering theory holds while the cone is narrow: ``--regime ebs`` bounds
-#: the extinction so that kappa / k0 stays at most this at every fitted wavelength
-EBS_KAPPA_OVER_K0 = 0.25
-
-#: Regimes of :func:`fit`
-REGIMES = ("ebs", "free")
 
 #: A parameter this close to a bound (fraction of its search range) is "at the bound"
 AT_BOUND = 1e-3
@@ -182,237 +166,6 @@ class FitResult:
         rel = self.residuals() / self.data.brf
         rel = rel if mask is None else rel[mask]
         return float(100.0 * np.sqrt(np.mean(rel**2)))
-
-
-def _check_free(free: list[str], fixed: dict) -> None:
-    unknown = [n for n in free if n not in FITTABLE]
-    if unknown:
-        raise ValueError(f"cannot fit {unknown}: fittable properties are {', '.join(FITTABLE)}")
-    if len(set(free)) != len(free) or not free:
-        raise ValueError(f"free properties must be distinct and non-empty, got {free}")
-    clash = [n for n in free if n in fixed]
-    if clash:
-        raise ValueError(f"{clash} are both free and fixed (--set)")
-    if ("radius2" in free or "fraction2" in free) and not (
-            ("radius2" in free or "radius2" in fixed) and
-            ("fraction2" in free or "fraction2" in fixed)):
-        raise ValueError("a second population needs radius2 and fraction2 (free or fixed)")
-    specular = fixed.get("specular", "harvey_shack")
-    unused = {"harvey_shack": "sigma", "gaussian": "correlation_length"}.get(specular)
-    if unused in free:
-        raise ValueError(f"{unused} has no effect with specular = {specular!r}: fit "
-                         f"{'correlation_length' if unused == 'sigma' else 'sigma'} instead, or "
-                         f"set specular={'gaussian' if unused == 'sigma' else 'harvey_shack'}")
-    grains = [n for n in GRAIN_VARIABLES + GRAIN_SETTINGS if n in free or n in fixed]
-    if ("albedo" in free or "albedo" in fixed) and grains:
-        raise ValueError(f"albedo and {grains} cannot be used together: a given albedo "
-                         "replaces the one Mie theory computes from the grains")
-    _check_grain_model(free, fixed)
-    if "albedo" in fixed and not isinstance(fixed["albedo"], (int, float)):
-        raise ValueError(f"albedo = {fixed['albedo']!r}: a fit takes a fixed albedo as one "
-                         "number in [0, 1]")
-    for name, value in fixed.items():
-        spec = FITTABLE.get(name)
-        if spec is not None and isinstance(value, (int, float)) and name != "albedo" and not (
-                math.isfinite(value) or name == "thickness"):
-            raise ValueError(f"{name} = {value} is not a finite number")
-
-
-def _check_grain_model(free: list[str], fixed: dict) -> None:
-    """The grain properties each model takes (as the plugin's constructor checks them)."""
-    model = fixed.get("grains", "sphere")
-    used = set(free) | set(fixed)
-    agglomerate = ("agglomerate_radius", "agglomerate_fill", "mixing")
-    if model != "agglomerate":
-        extra = [n for n in agglomerate if n in used]
-        if extra:
-            raise ValueError(f"{extra} are used only with grains = 'agglomerate' (grains = "
-                             f"{model!r}); set grains=agglomerate")
-        return
-    if "agglomerate_radius" not in used:
-        raise ValueError("grains = 'agglomerate' needs agglomerate_radius (free or fixed, um)")
-    if "radius" in free:
-        raise ValueError("radius is the crystallite radius with grains = 'agglomerate' and "
-                         "does not enter the albedo: fit agglomerate_radius (and "
-                         "agglomerate_fill) instead")
-    two = [n for n in ("radius2", "fraction2") if n in used]
-    if two:
-        raise ValueError(f"{two} cannot be used with grains = 'agglomerate' (one population)")
-
-
-class Problem:
-    """The least-squares problem in the optimiser's variables ``y`` (log10 for scale
-    parameters), batched over parameter sets (see
-    :class:`mitsuba_powder.fitting.optimise.BatchProblem`).
-
-    Variables: one per free property; ``albedo`` once per wavelength when several are fitted.
-    """
-
-    def __init__(self, data: Measurements, free: list[str], fixed: dict,
-                 regime: str = "ebs"):
-        _check_free(free, fixed)
-        if regime not in REGIMES:
-            raise ValueError(f"regime = {regime!r} is not valid; valid values are "
-                             f"{', '.join(REGIMES)}")
-        self.data = data
-        self.free = list(free)
-        self.fixed = dict(fixed)
-        self.regime = regime
-        self.wavelengths = data.wavelengths()
-        self.row_wavelength = np.searchsorted(self.wavelengths, data.wavelength)
-        self.names: list[tuple[str, float | None]] = []
-        for n in self.free:
-            if n == "albedo" and len(self.wavelengths) > 1:
-                self.names += [(n, float(w)) for w in self.wavelengths]
-            else:
-                self.names.append((n, None))
-        self.specs = [FITTABLE[n] for n, _ in self.names]
-        # EBS regime: kappa / k0 <= 0.25 at every wavelength, k0 = 2 pi / lambda; the
-        # longest wavelength has the smallest k0
-        self.extinction_limit = (EBS_KAPPA_OVER_K0 * 2.0 * math.pi /
-                                 (1e-3 * float(np.max(self.wavelengths))))
-        if regime == "ebs":
-            self.specs = [ParamSpec(s.lower, min(s.upper, self.extinction_limit), s.log,
-                                    min(s.start, self.extinction_limit))
-                          if n == "extinction" else s
-                          for s, (n, _) in zip(self.specs, self.names)]
-        self.lower = np.array([s.to_y(s.lower) for s in self.specs], dtype=np.float64)
-        self.upper = np.array([s.to_y(s.upper) for s in self.specs], dtype=np.float64)
-        self.weights = 1.0 / data.sigma if data.sigma is not None else np.ones(len(data))
-        self.target = data.brf
-        # float properties the plugin takes per parameter set
-        self.varying = [n for n in self.free if n != "albedo" and n not in GRAIN_VARIABLES]
-        self.grain_free = [n for n in GRAIN_VARIABLES if n in self.free]
-        self.albedo_mode = ("free" if "albedo" in self.free else
-                            "fixed" if "albedo" in self.fixed else "grains")
-        self.engine_properties = engine_properties(self.fixed)
-        self.grains = GrainOptics(self.fixed)
-        self.tau_o = (np.full(len(self.wavelengths), float(self.fixed["tau_o"]))
-                      if "tau_o" in self.fixed else
-                      None if "tau_o" in self.free else self.grains.tau_o(self.wavelengths))
-        self.grain_derivatives = True
-        self._engines: dict[int, BatchBRF] = {}
-        self._rho_cache: dict[tuple, tuple[np.ndarray, np.ndarray | None]] = {}
-        self.evaluations = 0
-
-    # ----------------------------------------------------------- variables
-
-    def index(self, name: str) -> int:
-        return [n for n, _ in self.names].index(name)
-
-    def x_of(self, y: np.ndarray) -> np.ndarray:
-        y = np.atleast_2d(y)
-        return np.stack([s.to_x(y[:, j]) for j, s in enumerate(self.specs)], axis=1)
-
-    def y_of(self, x: np.ndarray) -> np.ndarray:
-        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
-        return np.stack([s.to_y(x[:, j]) for j, s in enumerate(self.specs)], axis=1)
-
-    def start(self) -> np.ndarray:
-        """The default start (each property's :class:`ParamSpec` start), (p,)."""
-        return self.y_of(np.array([s.start for s in self.specs]))[0]
-
-    def hold_grains(self) -> np.ndarray:
-        """(p,) booleans: the grain variables."""
-        return np.array([n in GRAIN_VARIABLES for n, _ in self.names])
-
-    # ----------------------------------------------------------- evaluation
-
-    def _engine(self, batch: int) -> BatchBRF:
-        if batch not in self._engines:
-            self._engines[batch] = BatchBRF(self.data, self.engine_properties, batch,
-                                            self.varying)
-        return self._engines[batch]
-
-    def _grain_values(self, x: np.ndarray) -> tuple[np.ndarray, ...]:
-        """The :data:`GRAIN_VARIABLES` per parameter set (None where absent)."""
-        out = []
-        for name in GRAIN_VARIABLES:
-            if name in self.free:
-                out.append(x[:, self.index(name)])
-            elif name in self.fixed:
-                out.append(np.full(len(x), float(self.fixed[name])))
-            else:
-                out.append(None)
-        if out[0] is None:  # the plugin's default radius
-            out[0] = np.full(len(x), DEFAULT_RADIUS)
-        return tuple(out)
-
-    def albedo(self, x: np.ndarray, derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """rho (B, W) and, for grains, d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 5)."""
-        b, w = len(x), len(self.wavelengths)
-        if self.albedo_mode == "fixed":
-            return np.full((b, w), float(self.fixed["albedo"])), None
-        if self.albedo_mode == "free":
-            cols = [j for j, (n, _) in enumerate(self.names) if n == "albedo"]
-            return x[:, cols].reshape(b, w), None
-        grain = self._grain_values(x)
-        rho = np.empty((b, w))
-        deriv = np.zeros((b, w, len(GRAIN_VARIABLES)))
-        need = derivatives and self.grain_derivatives and bool(self.grain_free)
-        missing = []
-        for i in range(b):
-            key = tuple(None if v is None else float(v[i]) for v in grain) + (need,)
-            if key in self._rho_cache:
-                rho[i], d = self._rho_cache[key]
-                if d is not None:
-                    deriv[i] = d
-            else:
-                missing.append((i, key))
-        if missing:
-            idx = np.array([i for i, _ in missing])
-            r1, r2, f2, ra, fill = (None if v is None else v[idx] for v in grain)
-            values, d = self.grains.albedo(self.wavelengths, r1, r2, f2, derivatives=need,
-                                           agglomerate_radius=ra, agglomerate_fill=fill)
-            for k, (i, key) in enumerate(missing):
-                rho[i] = values[k]
-                if d is not None:
-                    deriv[i] = d[k]
-                if len(self._rho_cache) < 100000:
-                    self._rho_cache[key] = (values[k], None if d is None else d[k])
-        return rho, deriv
-
-    def _evaluate(self, y: np.ndarray, derivatives: bool):
-        y = np.atleast_2d(np.asarray(y, dtype=np.float64))
-        x = self.x_of(y)
-        rho, drho = self.albedo(x, derivatives)
-        values = {n: x[:, self.index(n)] for n in self.varying}
-        brf, grads = self._engine(len(x)).evaluate(values, rho, self.tau_o, derivatives)
-        self.evaluations += 1
-        res = (brf - self.target[None, :]) * self.weights[None, :]
-        if not derivatives:
-            return res, None
-        jac = np.zeros(res.shape + (len(self.names),))
-        for j, ((name, lam), spec) in enumerate(zip(self.names, self.specs)):
-            dxdy = spec.dx_dy(x[:, j])[:, None]
-            if name in self.varying:
-                col = grads[name]
-            elif name == "albedo":
-                col = grads["albedo"] if lam is None else grads["albedo"] * (
-                    self.data.wavelength == lam)[None, :]
-            else:  # a grain variable: chain rule through rho at each row's wavelength
-                k = GRAIN_VARIABLES.index(name)
-                col = grads["albedo"] * drho[:, self.row_wavelength, k]
-            jac[:, :, j] = col * dxdy * self.weights[None, :]
-        return res, jac
-
-    def residuals(self, y: np.ndarray) -> np.ndarray:
-        """Weighted residuals (B, N) of parameter sets y (B, p)."""
-        return self._evaluate(y, False)[0]
-
-    def jacobian(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Weighted residuals (B, N) and their Jacobian (B, N, p) with respect to y."""
-        return self._evaluate(y, True)
-
-    # ----------------------------------------------------------- results
-
-    def properties(self, x: np.ndarray, lam: float | None = None) -> dict:
-        """Plugin properties (mono form at wavelength ``lam``) of variables ``x`` (p,)."""
-        d = dict(self.fixed)
-        for j, (name, w) in enumerate(self.names):
-            if w is None or w == lam:
-                d[name] = float(x[j])
-        return d
 
 
 def _starts(problem: Problem, count: int, seed: int) -> np.ndarray:
@@ -624,10 +377,8 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
         ValueError: unknown, repeated or inconsistent parameter names; starts or polish < 1;
             an unknown regime.
     """
-    if starts < 1:
-        raise ValueError(f"starts = {starts} is out of range; valid range is [1, inf)")
-    if polish < 1:
-        raise ValueError(f"polish = {polish} is out of range; valid range is [1, inf)")
+    check_range("starts", starts, 1)
+    check_range("polish", polish, 1)
     if len(data) == 0:
         raise ValueError("no measurements to fit")
     # once for the whole fit: switching variants is slow

@@ -29,6 +29,8 @@ from typing import Protocol
 
 import numpy as np
 
+from .._checks import check_range
+
 #: Relative cost difference under which two starts "reach the same loss"
 AGREEMENT = 0.01
 
@@ -72,8 +74,7 @@ def sobol_starts(lower: np.ndarray, upper: np.ndarray, count: int, seed: int) ->
     """``count`` scrambled-Sobol points of the box, (count, p)."""
     from scipy.stats import qmc
 
-    if count < 1:
-        raise ValueError(f"starts = {count} is out of range; valid range is [1, inf)")
+    check_range("starts", count, 1)
     sampler = qmc.Sobol(d=len(lower), scramble=True, seed=seed)
     m = max(0, math.ceil(math.log2(count)))
     u = sampler.random_base2(m)[:count]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._checks import check_range
 from ..io.measurements import Measurements
 
 PROTOCOLS = ("shadows", "backscatter")
@@ -64,8 +65,7 @@ def simulate(properties: dict, protocols: list[str] | str, wavelengths=(700.0,),
     """
     from ..plugin.brf import PowderBRF
 
-    if noise < 0:
-        raise ValueError(f"noise = {noise} is out of range; valid range is [0, inf)")
+    check_range("noise", noise, 0)
     ti, to, ph = protocol_geometries(protocols)
     n = len(ti)
     wl = np.repeat(np.asarray(wavelengths, dtype=np.float64), n)

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._checks import interval_text
+
 REQUIRED = ("theta_i", "theta_o", "phi", "wavelength", "brf")
 OPTIONAL = ("sigma",)
 
@@ -149,10 +151,12 @@ def format_number(value: float, digits: int | None = None) -> str:
     return text if float(text) == value else repr(value)
 
 
-def _check_range(name: str, value: float, where: str) -> None:
+def _check_column_range(name: str, value: float, where: str) -> None:
+    """A value of column ``name`` in its range (:data:`RANGES`); ``where`` names the row."""
     lo, hi, lo_in, hi_in = RANGES[name]
     ok = (value >= lo if lo_in else value > lo) and (value <= hi if hi_in else value < hi)
     if not ok:
+        closed = ("[" if lo_in else "(") + ("]" if hi_in else ")")
         raise MeasurementError(
             f"{where}, column '{name}': {value:g} is out of range; valid range is "
-            f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}")
+            f"{interval_text(lo, hi, closed)}")

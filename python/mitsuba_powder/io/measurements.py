@@ -56,7 +56,7 @@ from .dataset import (
     REQUIRED,
     MeasurementError,
     Measurements,
-    _check_range,
+    _check_column_range,
     format_number,
     gonio_directions,
 )
@@ -149,7 +149,7 @@ def _load_csv(path: Path) -> Measurements:
                     f"{where}, column '{name}': '{text}' is not a number") from None
             if not np.isfinite(value):
                 raise MeasurementError(f"{where}, column '{name}': '{text}' is not finite")
-            _check_range(name, value, where)
+            _check_column_range(name, value, where)
             columns[name][k] = value
     return Measurements(columns["theta_i"], columns["theta_o"], columns["phi"],
                         columns["wavelength"], columns["brf"], columns.get("sigma"),

@@ -14,6 +14,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .._checks import check_range
 from ..variants import use_variant
 
 #: Default wavelength grid (nm) of the reported spectra
@@ -187,8 +188,7 @@ def powder_colour(
                          "valid range is 360-830 nm")
     if (radius2 is None) != (fraction2 is None):
         raise ValueError("give both radius2 and fraction2, or neither")
-    if samples < 16:
-        raise ValueError(f"samples = {samples} is out of range; valid range is [16, inf)")
+    check_range("samples", samples, 16)
 
     props = {"type": "powder", "radius": radius, **properties}
     if "eta" not in properties:
@@ -291,10 +291,24 @@ def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: in
         ValueError: a target the model cannot reach (naming the wavelength, the value and the
             reachable range), a bad geometry, or bad arrays or properties.
     """
-    from ..io.measurements import Measurements
-    from .brf import BatchBRF, batch_variant
-    from .grains import GrainOptics
+    from .brf import batch_variant
 
+    wl, target = _check_albedo_inputs(wavelengths_nm, reflectance, grid, properties)
+    kind, ti, to = _geometry(geometry)
+    order = np.argsort(wl)
+    wl, target = wl[order], target[order]
+    reflectances = _reflectance_of_albedo(kind, ti, to, wl, grid, properties)
+    with use_variant(batch_variant(wl)):
+        result = _solve_albedo(reflectances, target, wl, grid, kind)
+    out = np.empty(len(wl))
+    out[order] = result
+    return out
+
+
+def _check_albedo_inputs(wavelengths_nm, reflectance, grid: int, properties: dict
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """The checks of :func:`albedo_for_reflectance`'s arguments; (wavelengths, targets) as
+    float arrays."""
     wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=np.float64))
     target = np.atleast_1d(np.asarray(reflectance, dtype=np.float64))
     if wl.ndim != 1 or target.shape != wl.shape or len(wl) == 0:
@@ -307,11 +321,19 @@ def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: in
     bad = [k for k in ("albedo", "radius", "radius2", "fraction2") if k in properties]
     if bad:
         raise ValueError(f"{bad} cannot be given: the albedo is what is solved for")
-    if grid < 3:
-        raise ValueError(f"grid = {grid} is out of range; valid range is [3, inf)")
-    kind, ti, to = _geometry(geometry)
-    order = np.argsort(wl)
-    wl, target = wl[order], target[order]
+    check_range("grid", grid, 3)
+    return wl, target
+
+
+def _reflectance_of_albedo(kind: str, ti: float, to: float, wl: np.ndarray, grid: int,
+                           properties: dict):
+    """The plugin's reflectance at the geometry (``"0:d"``: hemispherical quadrature; else
+    the BRF at ``(ti, to)``) as a function of ``grid`` albedo values per wavelength: a callable
+    taking albedo (grid, W) and returning the reflectance (grid, W)."""
+    from ..io.measurements import Measurements
+    from .brf import BatchBRF
+    from .grains import GrainOptics
+
     if kind == "0:d":
         theta, weight = hemispherical_nodes()
     else:
@@ -324,38 +346,47 @@ def albedo_for_reflectance(wavelengths_nm, reflectance, geometry="0:d", grid: in
            else GrainOptics(optics).tau_o(wl))
     fixed = {k: v for k, v in properties.items() if k != "tau_o"}
     engine = BatchBRF(rows, fixed, grid, [])
-    with use_variant(batch_variant(wl)):
 
-        def reflectances(albedo: np.ndarray) -> np.ndarray:
-            """(grid, W) reflectance of (grid, W) albedo values."""
-            brf, _ = engine.evaluate({}, albedo, tau)
-            return (brf.reshape(grid, w, n) * weight).sum(axis=2)
+    def reflectances(albedo: np.ndarray) -> np.ndarray:
+        """(grid, W) reflectance of (grid, W) albedo values."""
+        brf, _ = engine.evaluate({}, albedo, tau)
+        return (brf.reshape(grid, w, n) * weight).sum(axis=2)
 
-        lo, hi = np.zeros(w), np.ones(w)
-        values = None
-        for _ in range(3):
-            albedo = lo + np.linspace(0.0, 1.0, grid)[:, None] * (hi - lo)
-            values = reflectances(albedo)
-            if lo.max() == 0.0 and hi.min() == 1.0:  # first round: the reachable range
-                low, high = values[0], values[-1]
-                out = (target < low - 1e-7) | (target > high + 1e-7)
-                if np.any(out):
-                    k = int(np.nonzero(out)[0][0])
-                    raise ValueError(
-                        f"reflectance {target[k]:.6g} at {wl[k]:g} nm cannot be reached: with "
-                        f"these properties the {'0:d reflectance' if kind == '0:d' else 'BRF'}"
-                        f" lies in [{low[k]:.6g}, {high[k]:.6g}] for albedo 0-1")
-            # the bracket of each wavelength (the reflectance grows with the albedo)
-            idx = np.clip(np.array([np.searchsorted(values[:, j], target[j])
-                                    for j in range(w)]), 1, grid - 1)
-            cols = np.arange(w)
-            lo, hi = albedo[idx - 1, cols], albedo[idx, cols]
-        r0, r1 = values[idx - 1, cols], values[idx, cols]
-        t = np.where(r1 > r0, (target - r0) / np.where(r1 > r0, r1 - r0, 1.0), 0.0)
-        result = np.clip(lo + np.clip(t, 0.0, 1.0) * (hi - lo), 0.0, 1.0)
-    out = np.empty(w)
-    out[order] = result
-    return out
+    return reflectances
+
+
+def _solve_albedo(reflectances, target: np.ndarray, wl: np.ndarray, grid: int, kind: str
+                  ) -> np.ndarray:
+    """The albedo (W,) whose reflectance equals ``target``: three rounds of a ``grid`` of
+    albedo values, each within the previous round's bracket (the reflectance grows with the
+    albedo), then linear interpolation in the last bracket.
+
+    Raises:
+        ValueError: a target outside the reachable range (albedo 0-1).
+    """
+    w = len(wl)
+    lo, hi = np.zeros(w), np.ones(w)
+    values = None
+    for _ in range(3):
+        albedo = lo + np.linspace(0.0, 1.0, grid)[:, None] * (hi - lo)
+        values = reflectances(albedo)
+        if lo.max() == 0.0 and hi.min() == 1.0:  # first round: the reachable range
+            low, high = values[0], values[-1]
+            out = (target < low - 1e-7) | (target > high + 1e-7)
+            if np.any(out):
+                k = int(np.nonzero(out)[0][0])
+                raise ValueError(
+                    f"reflectance {target[k]:.6g} at {wl[k]:g} nm cannot be reached: with "
+                    f"these properties the {'0:d reflectance' if kind == '0:d' else 'BRF'}"
+                    f" lies in [{low[k]:.6g}, {high[k]:.6g}] for albedo 0-1")
+        # the bracket of each wavelength (the reflectance grows with the albedo)
+        idx = np.clip(np.array([np.searchsorted(values[:, j], target[j])
+                                for j in range(w)]), 1, grid - 1)
+        cols = np.arange(w)
+        lo, hi = albedo[idx - 1, cols], albedo[idx, cols]
+    r0, r1 = values[idx - 1, cols], values[idx, cols]
+    t = np.where(r1 > r0, (target - r0) / np.where(r1 > r0, r1 - r0, 1.0), 0.0)
+    return np.clip(lo + np.clip(t, 0.0, 1.0) * (hi - lo), 0.0, 1.0)
 
 
 def write_spectrum(path, wavelengths_nm, values) -> None:

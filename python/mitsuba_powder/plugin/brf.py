@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .._checks import check_range
 from ..io.measurements import Measurements
 from ..variants import use_variant
 from .grains import DEFAULT_MATERIAL
@@ -154,8 +155,7 @@ class BatchBRF:
     """
 
     def __init__(self, data: Measurements, properties: dict, batch: int, varying: list[str]):
-        if batch < 1:
-            raise ValueError(f"batch = {batch} is out of range; valid range is [1, inf)")
+        check_range("batch", batch, 1)
         self.data = data
         self.batch = int(batch)
         self.varying = list(varying)

@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .._checks import check_range
 from ..variants import check_variant, use_variant
 from .gonio import eval_channels, film_dict, film_weights, patch_dict, sensor_dict
 
@@ -91,8 +92,7 @@ def hemispherical_reflectance(bsdf, theta_i: float, *, n_inner: int = 32, n_oute
     (``n_outer``, nodes dense at the horizon), ``rho_1 = min(rho_max, rho_split)``. The
     cap ``rho < rho_min`` is left out (a relative error of about ``rho_min^2``).
     """
-    if not 0.0 <= theta_i < 90.0:
-        raise ValueError(f"theta_i = {theta_i} is out of range; valid range is [0, 90) degrees")
+    check_range("theta_i", theta_i, 0.0, 90.0, note="degrees")
     t = np.radians(theta_i)
     mu_i, s_i = np.cos(t), np.sin(t)
     wi = np.array([s_i, 0.0, mu_i])

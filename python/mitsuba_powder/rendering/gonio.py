@@ -38,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .._checks import check_range
 from ..io.measurements import Measurements, gonio_directions
 from ..variants import check_variant, use_variant
 
@@ -49,18 +50,18 @@ STRATEGIES = ("emitter", "bsdf", "mis")
 #: estimate. Without them, a sample near the border of two sub-images of the batch sensor
 #: could be traced by one sub-sensor and splatted into the other's border column (float32
 #: rounding of the film position, which reaches 5e-4 pixel at x ~ 4000): one sample of the
-#: neighbouring geometry in a pixel, a bias of up to 3e-5 of the BRF, measured on the PTFE
-#: file's 305 geometries at 75 degrees (docs/gonio_validation.md)
+#: neighbouring geometry in a pixel, a bias of a few 1e-5 of the BRF at grazing geometries
+#: (measurements: docs/gonio_validation.md)
 GUARD_COLUMNS = 1
 #: float32 unit roundoff 2^-24 (relative rounding error of one operation)
 FLOAT32_U = 2.0**-24
 #: rounding of the plugin's eval and of the final scalings (film division, radiance to BRF),
 #: in units of FLOAT32_U: a bound on what a render at exactly the analytic directions adds
-#: besides the accumulation (measured: at most 3.4 u at 1 spp, where accumulation is exact)
+#: besides the accumulation, with a margin over what renders show (docs/gonio_validation.md)
 EVAL_ULPS = 16.0
 #: how far the render's directions are from the analytic ones, per component, in units of
 #: FLOAT32_U: the camera ray, the patch's frame and the directional emitter are float32
-#: transforms (measured: at most 2 u over both protocols; twice that as the bound)
+#: transforms; twice the largest difference seen (docs/gonio_validation.md)
 DIRECTION_ULPS = 4.0
 #: step (radians) of the one-sided differences of :func:`direction_sensitivity`
 SENSITIVITY_STEP = 1e-5
@@ -269,14 +270,10 @@ def patch_dict(properties: dict) -> dict:
 
 def _check(variant: str, spp: int, resolution: int, source_radius: float) -> None:
     check_variant(variant)
-    if spp < 1:
-        raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
-    if resolution < 2:
-        raise ValueError(f"resolution = {resolution} is out of range; valid range is "
-                         "[2, inf) (the error estimate needs several pixels)")
-    if not 0.0 <= source_radius <= 10.0:
-        raise ValueError(f"source_radius = {source_radius} degrees is out of range; "
-                         "valid range is [0, 10]")
+    check_range("spp", spp, 1)
+    check_range("resolution", resolution, 2,
+                note="(the error estimate needs several pixels)")
+    check_range("source_radius", source_radius, 0.0, 10.0, "[]", unit="degrees")
 
 
 def _disk_nodes(wi: np.ndarray, source_radius: float, n_r: int = 16, n_psi: int = 32
@@ -437,6 +434,46 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
     _check(variant, spp, resolution, source_radius)
     ti, to, ph = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in
                   (theta_i, theta_o, phi))
+    _check_geometries(ti, to, ph)
+    mono = "mono" in variant
+    lam = _wavelengths(wavelength, variant, ti.shape)
+    integrator = _integrator(strategy, source_radius == 0.0)
+    wi_all, wo_all = gonio_directions(ti, to, ph)
+    channels = ["Y"] if mono else ["R", "G", "B"]
+    n_c = len(channels)
+    rendered = np.empty((len(ti), n_c))
+    stderr = np.empty((len(ti), n_c))
+    analytic = np.empty((len(ti), n_c))
+    sensitivity = np.empty((len(ti), n_c))
+    seconds = 0.0
+    used: dict = {}
+    lam_key = np.nan_to_num(lam, nan=-1.0)  # NaN (no wavelength) != NaN in a set
+    keys = sorted(set(zip(lam_key.tolist(), ti.tolist(), strict=True)))
+    with use_variant(variant):
+        for lam_k, ti_k in keys:
+            idx = np.nonzero((ti == ti_k) & (lam_key == lam_k))[0]
+            props = dict(properties(lam_k) if callable(properties) else properties)
+            used[f"{lam_k:g}" if mono else "all"] = dict(props)
+            if mono:
+                props["wavelength"] = float(lam_k)
+            wi = wi_all[idx[0]]
+            pix, bsdf, took = _render_group(props, wi, wo_all[idx], integrator, source_radius,
+                                            resolution, spp, seed, n_c)
+            seconds += took
+            rendered[idx], stderr[idx] = _brf_of_pixels(pix, wi)
+            analytic[idx] = _analytic(bsdf, wo_all[idx], wi, source_radius)
+            sensitivity[idx] = _sensitivity(bsdf, wo_all[idx], wi, stderr[idx])
+            if progress is not None:
+                where = f"{lam_k:g} nm, " if mono else ""
+                progress(f"{where}theta_i {ti_k:g}: {len(idx)} geometries rendered")
+    return GonioResult(ti, to, ph, lam, channels, rendered, stderr, analytic,
+                       None if measured is None else np.asarray(measured, dtype=np.float64),
+                       variant, spp, resolution, source_radius, strategy, seconds,
+                       used["all"] if "all" in used else used, sensitivity)
+
+
+def _check_geometries(ti: np.ndarray, to: np.ndarray, ph: np.ndarray) -> None:
+    """Equal-length, non-empty angle arrays (degrees) in the valid ranges."""
     if not (len(ti) == len(to) == len(ph)) or len(ti) == 0:
         raise ValueError("theta_i, theta_o and phi must be non-empty and of equal length")
     for name, values, lo, hi, lo_in in (("theta_i", ti, 0.0, 90.0, True),
@@ -448,75 +485,70 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
             bad = float(values[~ok][0])
             valid = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if name == 'phi' else ')'}"
             raise ValueError(f"{name} = {bad:g} degrees is out of range; valid range is {valid}")
+
+
+def _wavelengths(wavelength, variant: str, shape: tuple) -> np.ndarray:
+    """The wavelength (nm) per geometry: 700 nm by default in mono variants, NaN (every
+    channel) in the others, which take no wavelength."""
     mono = "mono" in variant
     if wavelength is None:
-        lam = np.full(len(ti), 700.0 if mono else np.nan)
-    else:
-        if not mono:
-            raise ValueError(f"wavelength applies to mono variants only (variant = "
-                             f"{variant!r}): RGB and spectral variants render every channel")
-        lam = np.broadcast_to(np.asarray(wavelength, dtype=np.float64), ti.shape).copy()
-    directional = source_radius == 0.0
-    integrator = _integrator(strategy, directional)
-    wi_all, wo_all = gonio_directions(ti, to, ph)
-    channels = ["Y"] if mono else ["R", "G", "B"]
-    n_c = len(channels)
-    rendered = np.empty((len(ti), n_c))
-    stderr = np.empty((len(ti), n_c))
-    analytic = np.empty((len(ti), n_c))
-    sensitivity = np.empty((len(ti), n_c))
-    seconds = 0.0
-    used: dict = {}
-    lam_key = np.nan_to_num(lam, nan=-1.0)  # NaN (no wavelength) != NaN in a set
+        return np.full(shape, 700.0 if mono else np.nan)
+    if not mono:
+        raise ValueError(f"wavelength applies to mono variants only (variant = "
+                         f"{variant!r}): RGB and spectral variants render every channel")
+    return np.broadcast_to(np.asarray(wavelength, dtype=np.float64), shape).copy()
+
+
+def _render_group(props: dict, wi: np.ndarray, wo: np.ndarray, integrator: dict,
+                  source_radius: float, resolution: int, spp: int, seed: int, n_c: int):
+    """Render the views ``wo`` (K, 3) of one incidence ``wi`` in one batch sensor.
+
+    Returns:
+        (pixels (K, resolution**2, n_c) without the guard columns, the patch's BSDF, the
+        seconds the render took).
+    """
     width = resolution + 2 * GUARD_COLUMNS
-    keys = sorted(set(zip(lam_key.tolist(), ti.tolist(), strict=True)))
-    with use_variant(variant):
-        for lam_k, ti_k in keys:
-            idx = np.nonzero((ti == ti_k) & (lam_key == lam_k))[0]
-            props = dict(properties(lam_k) if callable(properties) else properties)
-            used[f"{lam_k:g}" if mono else "all"] = dict(props)
-            if mono:
-                props["wavelength"] = float(lam_k)
-            wi = wi_all[idx[0]]
-            scene = mi.load_dict({
-                "type": "scene", "integrator": integrator, "patch": patch_dict(props),
-                **source_dict(wi, source_radius),
-                "sensor": {"type": "batch",
-                           "film": film_dict(width * len(idx), resolution),
-                           "sampler": {"type": "independent", "sample_count": spp},
-                           **{f"s{j}": sensor_dict(wo_all[i], resolution, spp, GUARD_COLUMNS)
-                              for j, i in enumerate(idx)}},
-            })
-            start = time.perf_counter()
-            image = mi.render(scene, seed=seed)
-            dr.sync_thread()
-            img = np.array(image, dtype=np.float64)
-            seconds += time.perf_counter() - start
-            pix = img.reshape(resolution, len(idx), width, -1)[
-                :, :, GUARD_COLUMNS:GUARD_COLUMNS + resolution, :n_c]
-            pix = np.moveaxis(pix, 1, 0).reshape(len(idx), resolution * resolution, n_c)
-            # irradiance 1 normal to the beam; in spectral variants the film sees it as the
-            # sRGB value of a unit spectrum
-            white = film_weights()[1].sum(axis=1) if mi.is_spectral else np.ones(3)
-            scale = np.pi / wi[2] / white[:pix.shape[2]]
-            rendered[idx] = scale * pix.mean(axis=1)
-            stderr[idx] = scale * pix.std(axis=1, ddof=1) / np.sqrt(pix.shape[1])
-            bsdf = next(s.bsdf() for s in scene.shapes() if s.id() == "patch")
-            analytic[idx] = _analytic(bsdf, wo_all[idx], wi, source_radius)
-            # G sets the float32 tolerance of the deterministic values; spectral variants
-            # (Monte Carlo in wavelength, and slow to differentiate in scalar_spectral) only
-            # need it where a standard error is exactly 0
-            need = idx if not mi.is_spectral else idx[(stderr[idx] == 0.0).any(axis=1)]
-            sensitivity[idx] = 0.0
-            if len(need):
-                sensitivity[need] = direction_sensitivity(bsdf, wo_all[need], wi)
-            if progress is not None:
-                where = f"{lam_k:g} nm, " if mono else ""
-                progress(f"{where}theta_i {ti_k:g}: {len(idx)} geometries rendered")
-    return GonioResult(ti, to, ph, lam, channels, rendered, stderr, analytic,
-                       None if measured is None else np.asarray(measured, dtype=np.float64),
-                       variant, spp, resolution, source_radius, strategy, seconds,
-                       used["all"] if "all" in used else used, sensitivity)
+    scene = mi.load_dict({
+        "type": "scene", "integrator": integrator, "patch": patch_dict(props),
+        **source_dict(wi, source_radius),
+        "sensor": {"type": "batch",
+                   "film": film_dict(width * len(wo), resolution),
+                   "sampler": {"type": "independent", "sample_count": spp},
+                   **{f"s{j}": sensor_dict(view, resolution, spp, GUARD_COLUMNS)
+                      for j, view in enumerate(wo)}},
+    })
+    start = time.perf_counter()
+    image = mi.render(scene, seed=seed)
+    dr.sync_thread()
+    img = np.array(image, dtype=np.float64)
+    seconds = time.perf_counter() - start
+    pix = img.reshape(resolution, len(wo), width, -1)[
+        :, :, GUARD_COLUMNS:GUARD_COLUMNS + resolution, :n_c]
+    pix = np.moveaxis(pix, 1, 0).reshape(len(wo), resolution * resolution, n_c)
+    bsdf = next(s.bsdf() for s in scene.shapes() if s.id() == "patch")
+    return pix, bsdf, seconds
+
+
+def _brf_of_pixels(pix: np.ndarray, wi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """BRF (K, C) and its standard error from the pixels (K, P, C) of views lit from ``wi``."""
+    # irradiance 1 normal to the beam; in spectral variants the film sees it as the
+    # sRGB value of a unit spectrum
+    white = film_weights()[1].sum(axis=1) if mi.is_spectral else np.ones(3)
+    scale = np.pi / wi[2] / white[:pix.shape[2]]
+    return scale * pix.mean(axis=1), scale * pix.std(axis=1, ddof=1) / np.sqrt(pix.shape[1])
+
+
+def _sensitivity(bsdf, wo: np.ndarray, wi: np.ndarray, stderr: np.ndarray) -> np.ndarray:
+    """:func:`direction_sensitivity` (K, C) where it is needed, else 0."""
+    # G sets the float32 tolerance of the deterministic values; spectral variants
+    # (Monte Carlo in wavelength, and slow to differentiate in scalar_spectral) only
+    # need it where a standard error is exactly 0
+    out = np.zeros(stderr.shape)
+    need = (np.arange(len(wo)) if not mi.is_spectral
+            else np.nonzero((stderr == 0.0).any(axis=1))[0])
+    if len(need):
+        out[need] = direction_sensitivity(bsdf, wo[need], wi)
+    return out
 
 
 def render_measurements(properties, data: Measurements, **kwargs) -> GonioResult:

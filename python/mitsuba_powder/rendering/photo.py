@@ -24,6 +24,7 @@ from pathlib import Path
 import colour
 import numpy as np
 
+from .._checks import check_range
 from ..outputs import note_input, output_file, output_path
 
 ENCODINGS = ("auto", "linear", "srgb")
@@ -144,9 +145,7 @@ def chart_patch_centres(corners) -> np.ndarray:
 
 def sample_patches(image: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
     """Mean RGB (24, 3) in a ``(2 half + 1)^2`` pixel window around each centre."""
-    if half < 0:
-        raise ValueError(f"chart window half-size (--chart-window) = {half} px is out of range; "
-                         "valid range is [0, inf)")
+    check_range("chart window half-size (--chart-window)", half, 0, unit="px")
     h, w = image.shape[:2]
     out = []
     for x, y in centres:
@@ -200,8 +199,7 @@ def align(render: np.ndarray, photo: np.ndarray, mode: str = "white-balance",
 def delta_e_2000(a: np.ndarray, b: np.ndarray, white: float) -> np.ndarray:
     """CIEDE2000 per pixel between linear sRGB images ``a`` and ``b``; ``white`` is the
     linear value that maps to L* = 100 (Y = 1), D65."""
-    if not white > 0:
-        raise ValueError(f"white = {white} is out of range; valid range is (0, inf)")
+    check_range("white", white, 0.0, closed="()")
     d65 = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
 
     def lab(x: np.ndarray) -> np.ndarray:
@@ -231,6 +229,46 @@ class Comparison:
     chart_matrix: list[list[float]] | None = None
     chart_delta_e_mean: float | None = None
     chart_delta_e_max: float | None = None
+
+
+def _region_mask(h: int, w: int, region) -> np.ndarray:
+    """(H, W) booleans: the pixels of ``region`` ``(x0, y0, x1, y1)`` (all when None)."""
+    mask = np.zeros((h, w), bool)
+    if region is None:
+        mask[:] = True
+        return mask
+    x0, y0, x1, y1 = (int(v) for v in region)
+    if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
+        raise ValueError(f"region = {tuple(region)} is out of range; valid: 0 <= x0 < x1 <= "
+                         f"{w}, 0 <= y0 < y1 <= {h}")
+    mask[y0:y1, x0:x1] = True
+    return mask
+
+
+def _leave_out_clipped(photo: np.ndarray, mask: np.ndarray, saturation: float | None,
+                       max_clipped: float) -> int:
+    """Clear from ``mask`` (in place) the photo pixels with a channel at or above
+    ``saturation``; returns how many were cleared.
+
+    Raises:
+        ValueError: every pixel clipped, or more than ``max_clipped`` of them.
+    """
+    if saturation is None:
+        return 0
+    region_pixels = int(mask.sum())
+    clipped = np.any(photo >= saturation, axis=2) & mask
+    saturated = int(clipped.sum())
+    mask &= ~clipped
+    if not mask.any():
+        raise ValueError(f"saturation = {saturation}: every compared photo pixel is clipped")
+    if saturated > max_clipped * region_pixels:
+        raise ValueError(
+            f"{saturated} of the {region_pixels} compared photo pixels "
+            f"({100 * saturated / region_pixels:.1f} %) are clipped (a channel >= "
+            f"{saturation:g}), more than max_clipped (--max-clipped) = {max_clipped:g}: "
+            "the comparison would leave out the brightest parts of the sample. Take the "
+            "photo at a lower exposure, or give --region, or raise --max-clipped")
+    return saturated
 
 
 def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart_half: int = 3,
@@ -263,34 +301,11 @@ def compare_images(render: np.ndarray, photo: np.ndarray, *, corners=None, chart
                          f"{photo.shape[1]} x {photo.shape[0]} px: crop or register them to the "
                          "same size first")
     h, w = render.shape[:2]
-    mask = np.zeros((h, w), bool)
-    if region is None:
-        mask[:] = True
-    else:
-        x0, y0, x1, y1 = (int(v) for v in region)
-        if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
-            raise ValueError(f"region = {tuple(region)} is out of range; valid: 0 <= x0 < x1 <= "
-                             f"{w}, 0 <= y0 < y1 <= {h}")
-        mask[y0:y1, x0:x1] = True
-    if not 0.0 <= max_clipped <= 1.0:
-        raise ValueError(f"max_clipped (--max-clipped) = {max_clipped} is out of range; valid "
-                         "range is [0, 1]")
+    mask = _region_mask(h, w, region)
+    check_range("max_clipped (--max-clipped)", max_clipped, 0.0, 1.0, "[]")
     mask &= np.all(np.isfinite(render), axis=2) & np.all(np.isfinite(photo), axis=2)
     region_pixels = int(mask.sum())
-    saturated = 0
-    if saturation is not None:
-        clipped = np.any(photo >= saturation, axis=2) & mask
-        saturated = int(clipped.sum())
-        mask &= ~clipped
-        if not mask.any():
-            raise ValueError(f"saturation = {saturation}: every compared photo pixel is clipped")
-        if saturated > max_clipped * region_pixels:
-            raise ValueError(
-                f"{saturated} of the {region_pixels} compared photo pixels "
-                f"({100 * saturated / region_pixels:.1f} %) are clipped (a channel >= "
-                f"{saturation:g}), more than max_clipped (--max-clipped) = {max_clipped:g}: "
-                "the comparison would leave out the brightest parts of the sample. Take the "
-                "photo at a lower exposure, or give --region, or raise --max-clipped")
+    saturated = _leave_out_clipped(photo, mask, saturation, max_clipped)
     matrix = chart_de = None
     if corners is not None:
         photo, matrix, chart_de = calibrate_with_chart(photo, corners, chart_half)

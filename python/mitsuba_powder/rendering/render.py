@@ -9,6 +9,7 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
+from .._checks import check_range
 from ..outputs import guarding_inputs, output_file
 from ..plugin.params import check_property_names
 from ..variants import check_variant, use_variant
@@ -145,8 +146,8 @@ def render_scene(
     check_variant(variant)
     if output.suffix.lower() not in (".exr", ".png", ".jpg", ".hdr", ".pfm"):
         raise ValueError(f"output {output}: extension must be .exr, .png, .jpg, .hdr or .pfm")
-    if spp is not None and spp < 1:
-        raise ValueError(f"spp = {spp} is out of range; valid range is [1, inf)")
+    if spp is not None:
+        check_range("spp", spp, 1)
     if properties:
         check_property_names(properties)
 

@@ -1,0 +1,106 @@
+"""Commands about a powder's appearance: ``colour`` (from its grains) and ``albedo`` (the albedo
+spectrum that reproduces a reflectance or a colour)."""
+
+from __future__ import annotations
+
+import argparse
+
+from .common import _parse_define, _value
+
+
+def _cmd_colour(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..plugin.appearance import powder_colour
+
+    if (args.radius2 is None) != (args.fraction2 is None):
+        raise ValueError("give both --radius2 and --fraction2, or neither")
+    model = {}
+    if args.grains != "sphere":
+        model["grains"] = args.grains
+    if args.agglomerate_radius is not None:
+        model["agglomerate_radius"] = args.agglomerate_radius
+    if args.agglomerate_fill is not None:
+        model["agglomerate_fill"] = args.agglomerate_fill
+    if args.mixing is not None:
+        model["mixing"] = args.mixing
+    c = powder_colour(args.radius, radius2=args.radius2, fraction2=args.fraction2,
+                      material=args.material, samples=args.samples, **model)
+    grains = f"{args.grains} grains, radius {args.radius:g} um"
+    if args.radius2 is not None:
+        grains += f" + radius2 {args.radius2:g} um (volume fraction {args.fraction2:g})"
+    if args.grains == "agglomerate":
+        grains += (f" (crystallites) in agglomerates of radius {args.agglomerate_radius:g} um, "
+                   f"fill {c.properties.get('agglomerate_fill', 0.5):g}, "
+                   f"{c.properties.get('mixing', 'bruggeman')}")
+    print(f"{args.material}, {grains}; plugin defaults otherwise")
+    print(f"{'nm':>5s} {'albedo':>8s} {'Q_ext':>9s} {'Q_sca':>9s} {'tau_o':>7s} {'R(0/d)':>8s}")
+    step = max(1, len(c.wavelengths_nm) // 12)
+    for i in range(0, len(c.wavelengths_nm), step):
+        print(f"{c.wavelengths_nm[i]:5.0f} {c.albedo[i]:8.4f} {c.q_ext[i]:9.4g} "
+              f"{c.q_sca[i]:9.4g} {c.tau_o[i]:7.3f} {c.reflectance[i]:8.4f}")
+    print(f"CIE XYZ (D65): {np.array2string(c.xyz, precision=4)}")
+    print(f"sRGB: {np.array2string(c.srgb, precision=4)} (8 bit: {c.srgb8})")
+    print(f"CIELAB: L* {c.lab[0]:.2f}, a* {c.lab[1]:.2f}, b* {c.lab[2]:.2f}")
+    return 0
+
+
+def _read_reflectance_csv(path: str) -> tuple:
+    """(wavelengths nm, reflectance) from a CSV of two columns (an optional header line;
+    ``#`` lines are comments)."""
+    import csv
+    from pathlib import Path
+
+    import numpy as np
+
+    from ..outputs import note_input
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"--reflectance {path}: no such file")
+    note_input(p)
+    wl, values = [], []
+    with p.open(newline="", encoding="utf-8") as fh:
+        for lineno, row in enumerate(csv.reader(fh), start=1):
+            if not row or row[0].strip().startswith("#"):
+                continue
+            if len(row) != 2:
+                raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 2 "
+                                 "(wavelength in nm, reflectance)")
+            try:
+                a, b = float(row[0]), float(row[1])
+            except ValueError:
+                if not wl:  # a header line
+                    continue
+                raise ValueError(f"{path}, line {lineno}: {row!r} is not two numbers") from None
+            wl.append(a)
+            values.append(b)
+    if not wl:
+        raise ValueError(f"{path}: no data rows (wavelength nm, reflectance)")
+    return np.array(wl), np.array(values)
+
+
+def _cmd_albedo(args: argparse.Namespace) -> int:
+    from ..plugin.appearance import albedo_for_reflectance, reflectance_of_srgb, write_spectrum
+
+    if (args.reflectance is None) == (args.srgb is None):
+        raise ValueError("give exactly one of --reflectance FILE.csv and --srgb R,G,B")
+    if args.srgb is not None:
+        try:
+            rgb = [float(v) for v in args.srgb.split(",")]
+        except ValueError:
+            raise ValueError(f"--srgb {args.srgb!r}: expected R,G,B, e.g. 0.7,0.35,0.25") \
+                from None
+        wl, target = reflectance_of_srgb(rgb)
+        source = f"sRGB {args.srgb} (spectral upsampling: Mallett & Yuksel 2019)"
+    else:
+        wl, target = _read_reflectance_csv(args.reflectance)
+        source = args.reflectance
+    props = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
+    albedo = albedo_for_reflectance(wl, target, args.geometry, **props)
+    write_spectrum(args.out, wl, albedo)
+    print(f"albedo for {source}, geometry {args.geometry}, properties "
+          f"{props or 'plugin defaults'}: {len(wl)} wavelengths {wl.min():g}-{wl.max():g} nm, "
+          f"albedo {albedo.min():.4f}-{albedo.max():.4f}")
+    print(f"wrote {args.out} (use it as <spectrum name=\"albedo\" filename=\"{args.out}\"/>)")
+    return 0

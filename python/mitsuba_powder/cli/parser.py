@@ -1,0 +1,338 @@
+"""The argument parser of ``mitsuba-powder``: one ``_add_<command>_parser`` per command."""
+
+from __future__ import annotations
+
+import argparse
+
+from .appearance import _cmd_albedo, _cmd_colour
+from .fitting import _cmd_compare_models, _cmd_fit, _cmd_simulate
+from .rendering import _cmd_compare_photo, _cmd_info, _cmd_render, _cmd_render_gonio
+from .rti import _cmd_compare_maps, _cmd_fit_maps, _cmd_relight
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the help already states it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or not action.option_strings or action.default is None
+                or action.default is argparse.SUPPRESS or isinstance(action.default, bool)
+                or action.default == []):
+            return text
+        return text + " (default: %(default)s)"
+
+
+def _version() -> str:
+    """The installed distribution's version (no import of mitsuba needed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("mitsuba-powder")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        from .. import __version__
+
+        return __version__
+
+
+def _add_set_option(p: argparse.ArgumentParser, text: str) -> None:
+    """The repeatable ``--set NAME=VALUE`` option (a plugin property)."""
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=text)
+
+
+def _add_capture_options(p: argparse.ArgumentParser, use: str) -> None:
+    """The capture argument and its options (commands that read RTI captures)."""
+    p.add_argument("capture", help="the capture's .lp file (first line the count, then "
+                                   "'filename lx ly lz'); images beside it")
+    p.add_argument("--encoding", choices=("srgb", "linear"), default="srgb",
+                   help="srgb: file values are sRGB-encoded (linearised on read); linear: "
+                        "value / full scale is linear (default srgb)")
+    p.add_argument("--mask", default=None,
+                   help=f"mask image (PNG): pixels above half scale are {use}")
+
+
+def _add_data_options(p: argparse.ArgumentParser) -> None:
+    """Options of the commands that read measurement files."""
+    p.add_argument("--convention", choices=("signed", "physical"), default=None,
+                   help="IPAG files: angle convention (default: decided from the file; "
+                        "see docs/fitting.md, 'Files from IPAG goniometers and SSHADE')")
+    p.add_argument("--zero-error", choices=("raise", "unweighted", "skip"), default="raise",
+                   help="IPAG files where some errors are zero or missing: stop (raise), "
+                        "fit unweighted, or skip those values")
+
+
+def _add_info_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``info`` command."""
+    p = sub.add_parser("info", help="show where the plugin is and whether LLVM works")
+    p.set_defaults(func=_cmd_info)
+
+
+def _add_render_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``render`` command."""
+    p = sub.add_parser("render", help="render a scene file that uses the powder BSDF")
+    p.add_argument("scene", help="scene XML file")
+    p.add_argument("-o", "--output", required=True, help="output image (.exr or .png)")
+    p.add_argument("--variant", default="scalar_rgb", help="Mitsuba variant (default scalar_rgb)")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel (default: scene's)")
+    p.add_argument(
+        "-D", "--define", action="append", default=[], metavar="NAME=VALUE",
+        help="set a scene parameter declared with <default name=...> (repeatable)",
+    )
+    p.add_argument("--params", default=None,
+                   help="JSON of powder properties or a fit.json, set on every powder BSDF")
+    _add_set_option(p, "a powder property set on every powder BSDF (repeatable); a name that "
+                    "is not a powder property is an error")
+    p.add_argument("--allow-missing", action="store_true",
+                   help="render even if some --params/--set properties cannot be set on this "
+                        "scene (default: an error naming them)")
+    p.set_defaults(func=_cmd_render)
+
+
+def _add_render_gonio_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``render-gonio`` command."""
+    p = sub.add_parser("render-gonio",
+                       help="render the patch at gonio geometries; rendered vs analytic BRF")
+    p.add_argument("--protocol", default=None,
+                   help="comma-separated protocols: shadows, backscatter (default both)")
+    p.add_argument("--data", default=None,
+                   help="measurement CSV, IPAG file or folder: render its geometries and "
+                        "wavelengths (mono)")
+    p.add_argument("--params", default=None, help="JSON of plugin properties or a fit.json")
+    _add_set_option(p, "plugin property (repeatable), e.g. --set extinction=2")
+    p.add_argument("--variant", default=None,
+                   help="Mitsuba variant (default llvm_ad_rgb; llvm_ad_mono with --data)")
+    p.add_argument("--wavelength", type=float, default=None,
+                   help="nm: with --protocol, the mono variants' wavelength (default 700); "
+                        "with --data, render only that wavelength's rows")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel")
+    p.add_argument("--resolution", type=int, default=16, help="pixels per side per geometry")
+    p.add_argument("--source-radius", type=float, default=0.0,
+                   help="angular radius of the source, degrees (0: collimated)")
+    p.add_argument("--strategy", default="emitter", choices=("emitter", "bsdf", "mis"),
+                   help="how the source is sampled: emitter, bsdf or multiple importance "
+                        "sampling")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="gonio_out", help="output folder")
+    _add_data_options(p)
+    p.set_defaults(func=_cmd_render_gonio)
+
+
+def _add_compare_photo_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``compare-photo`` command."""
+    p = sub.add_parser("compare-photo", help="compare a render with a photo (CIEDE2000)")
+    p.add_argument("render", help="rendered image (.exr, .png, .jpg)")
+    p.add_argument("photo", help="photograph (.exr, .png, .jpg; 8 or 16 bit)")
+    for who in ("render", "photo"):
+        p.add_argument(f"--{who}-encoding", default="auto", choices=("auto", "linear", "srgb"),
+                       help="auto: EXR linear, PNG/JPEG sRGB-encoded")
+    p.add_argument("--chart", default=None, metavar="'X,Y X,Y X,Y X,Y'",
+                   help="calibrate the photo with the ColorChecker 24 in it: pixel centres of "
+                        "its dark skin, bluish green, black and white patches")
+    p.add_argument("--chart-window", type=int, default=3,
+                   help="half-size of the patch sampling window, px")
+    p.add_argument("--align", default="white-balance",
+                   choices=("none", "exposure", "white-balance"),
+                   help="exposure: one gain; white-balance: per-channel gains")
+    p.add_argument("--region", default=None, help="x0,y0,x1,y1: pixels to compare")
+    p.add_argument("--white", type=float, default=None,
+                   help="linear level of L* = 100 (default: the render's 99th percentile)")
+    p.add_argument("--saturation", type=float, default=None,
+                   help="leave out photo pixels with a channel >= this linear value (default "
+                        "0.99 for PNG/JPEG, none for EXR; negative: keep all)")
+    p.add_argument("--max-clipped", type=float, default=0.1, metavar="FRACTION",
+                   help="stop with an error when more than this fraction of the compared "
+                        "region is clipped in the photo (0-1; 1: never)")
+    p.add_argument("--out", default="photo_compare",
+                   help="output folder (photo_comparison.json, delta_e.png, side_by_side.png)")
+    p.set_defaults(func=_cmd_compare_photo)
+
+
+def _add_albedo_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``albedo`` command."""
+    p = sub.add_parser("albedo", help="the albedo spectrum that reproduces a measured "
+                                      "reflectance or an sRGB colour")
+    p.add_argument("--reflectance", default=None, metavar="FILE.csv",
+                   help="CSV of wavelength (nm), reflectance")
+    p.add_argument("--srgb", default=None, metavar="R,G,B",
+                   help="an sRGB colour (0-1 or 0-255), upsampled to a spectrum")
+    p.add_argument("--geometry", default="0:d",
+                   help="0:d (directional-hemispherical at normal incidence) or "
+                        "THETA_I:THETA_O, e.g. 0:45 (the BRF in the plane of incidence)")
+    _add_set_option(p, "another plugin property, e.g. --set extinction=0.5 (repeatable)")
+    p.add_argument("--out", required=True, help="output spectrum file (.spd)")
+    p.set_defaults(func=_cmd_albedo)
+
+
+def _add_colour_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``colour`` command."""
+    p = sub.add_parser("colour", help="albedo, tau_o and colour of a powder from its grains")
+    p.add_argument("--radius", type=float, default=0.017, help="grain radius, um")
+    p.add_argument("--radius2", type=float, default=None, help="second population radius, um")
+    p.add_argument("--fraction2", type=float, default=None,
+                   help="volume fraction of the second population")
+    p.add_argument("--material", default="hematite",
+                   help="hematite, magnetite or a refractiveindex.info YAML file")
+    p.add_argument("--grains", default="sphere", choices=["sphere", "agglomerate", "slab"],
+                   help="grain model (docs/powder.md, Grain models)")
+    p.add_argument("--agglomerate-radius", type=float, default=None,
+                   help="agglomerate radius, um (--grains agglomerate)")
+    p.add_argument("--agglomerate-fill", type=float, default=None,
+                   help="volume fill of crystallites in an agglomerate (default 0.5)")
+    p.add_argument("--mixing", default=None, choices=["bruggeman", "maxwell_garnett"],
+                   help="effective-medium rule of an agglomerate (default bruggeman)")
+    p.add_argument("--samples", type=int, default=4096, help="quadrature nodes")
+    p.set_defaults(func=_cmd_colour)
+
+
+def _add_fit_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``fit`` command."""
+    p = sub.add_parser("fit", help="fit the powder model to goniometer measurements")
+    p.add_argument("data", help="measurement CSV, IPAG file, or folder of IPAG "
+                   "single-geometry files (see mitsuba_powder.io.measurements)")
+    p.add_argument("--wavelength", type=float, nargs="+", default=None,
+                   help="fit only these wavelengths, nm (several: a joint fit)")
+    p.add_argument("--free", default=None,
+                   help="plugin properties to fit, comma-separated (default: amplitude_volume,"
+                        "g,extinction,amplitude_surface,correlation_length, plus radius when "
+                        "several wavelengths are fitted)")
+    _add_set_option(p, "a fixed plugin property, e.g. --set tau_o=0.6667 (repeatable)")
+    p.add_argument("--fit-incidences", default=None, metavar="DEG,DEG,...",
+                   help="fit only these incidences and report the prediction of the others")
+    p.add_argument("--starts", type=int, default=64,
+                   help="starts of the global phase (Sobol design; with the radius free, on a "
+                        "log grid of radii)")
+    p.add_argument("--polish", type=int, default=4,
+                   help="distinct end points of the global phase polished (scipy)")
+    p.add_argument("--regime", choices=("ebs", "free"), default="ebs",
+                   help="ebs: bound the extinction so that kappa/k0 <= 0.25 at every fitted "
+                        "wavelength (the narrow-cone regime of the theory); free: lift it")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="fit_out", help="output folder (fit.json, figures)")
+    p.add_argument("--figures", choices=("summary", "all", "none"), default="summary",
+                   help="summary: one set for the whole fit (relative RMSE per wavelength, "
+                        "residuals against the angles, the plane of incidence at up to 4 "
+                        "wavelengths); all: also a plane-of-incidence and a polar figure per "
+                        "wavelength; none: fit.json only (default summary)")
+    _add_data_options(p)
+    p.set_defaults(func=_cmd_fit)
+
+
+def _add_simulate_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``simulate`` command."""
+    p = sub.add_parser("simulate", help="simulate measurements at protocol geometries")
+    p.add_argument("--params", required=True,
+                   help="JSON of plugin properties, or a fit.json (its 'parameters')")
+    p.add_argument("--protocol", default="shadows,backscatter",
+                   help="comma-separated: shadows, backscatter")
+    p.add_argument("--wavelength", type=float, nargs="+", default=None, help="nm (700)")
+    p.add_argument("--noise", type=float, default=0.0, help="relative 1-sigma noise")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True,
+                   help="output CSV, IPAG file (--layout multi) or folder (--layout single)")
+    p.add_argument("--format", choices=("csv", "ipag"), default="csv",
+                   help="csv (project format) or ipag (IPAG goniometer text)")
+    p.add_argument("--layout", choices=("multi", "single"), default="multi",
+                   help="ipag: one multi-geometry file, or a folder of single-geometry files")
+    p.add_argument("--convention", choices=("physical", "signed"), default="physical",
+                   help="ipag: angles as newer files and SSHADE (physical) or older files "
+                        "(signed; plane of incidence only)")
+    p.add_argument("--sample", default="synthetic", help="ipag: sample name in the file")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _add_compare_models_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``compare-models`` command."""
+    p = sub.add_parser("compare-models",
+                       help="fit the powder model and four baselines to the same data")
+    p.add_argument("data", help="measurement CSV, IPAG file or folder")
+    p.add_argument("--wavelength", type=float, nargs="+", default=None, help="nm")
+    p.add_argument("--free", default=None, help="powder properties to fit (as in fit)")
+    _add_set_option(p, "fixed powder property (repeatable)")
+    p.add_argument("--starts", type=int, default=64,
+                   help="starts of each model's global phase")
+    p.add_argument("--out", default="model_compare",
+                   help="output folder (model_comparison.md and .json)")
+    _add_data_options(p)
+    p.set_defaults(func=_cmd_compare_models)
+
+
+def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``fit-maps`` command."""
+    p = sub.add_parser("fit-maps", help="fit a normal and powder parameters to every pixel of "
+                                        "an RTI capture; write EXR maps and a scene")
+    p.add_argument("--out", required=True,
+                   help="output folder: <property>.exr, albedo.exr, normal.exr, residual.exr, "
+                        "fit.json, scene.xml")
+    p.add_argument("--free", default=None,
+                   help="comma-separated properties fitted per pixel besides the normal "
+                        "(default: albedo, amplitude_surface, correlation_length; "
+                        "docs/rti.md says why)")
+    _add_capture_options(p, "fitted")
+    p.add_argument("--gains", choices=("fit", "fixed"), default="fit",
+                   help="per-light gains shared by all pixels: fitted (mean 1) or all 1")
+    _add_set_option(p, "a plugin property held for every pixel (repeatable), e.g. "
+                    "--set extinction=0.5")
+    p.add_argument("--iterations", type=int, default=30,
+                   help="Levenberg-Marquardt iterations per round")
+    p.add_argument("--rounds", type=int, default=3,
+                   help="alternations of the per-pixel fit with the gains")
+    p.set_defaults(func=_cmd_fit_maps)
+
+
+def _add_relight_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``relight`` command."""
+    p = sub.add_parser("relight", help="images of a fit-maps result under the lights of an "
+                                       ".lp file")
+    p.add_argument("maps", help="folder written by fit-maps")
+    p.add_argument("--lp", required=True,
+                   help="lights: an .lp file (count, then 'filename lx ly lz' per line)")
+    p.add_argument("--out", required=True, help="output folder (one image per .lp line, "
+                                                "the capture's format and bit depth)")
+    p.set_defaults(func=_cmd_relight)
+
+
+def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``compare-maps`` command."""
+    p = sub.add_parser("compare-maps", help="held-out-light error of per-pixel models (PTM, "
+                                            "HSH, Lambertian) on an RTI capture")
+    p.add_argument("--out", required=True,
+                   help="output folder (compare.md, compare.json, error maps)")
+    _add_capture_options(p, "scored")
+    p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
+                   help="comma-separated: ptm, hsh, lambertian, lambertian_clamped, powder "
+                        "(the per-pixel powder fit of fit-maps)")
+    p.add_argument("--free", default=None,
+                   help="powder model: properties fitted per pixel besides the normal "
+                        "(default: see fit-maps)")
+    _add_set_option(p, "powder model: a plugin property held for every pixel (repeatable)")
+    p.add_argument("--phase", type=int, default=4,
+                   help="interpolation protocol: hold out the lights k %% 5 == PHASE (.lp "
+                        "order from 0; default 4)")
+    p.add_argument("--no-error-images", action="store_true",
+                   help="do not write the per-pixel error maps (PNG)")
+    p.set_defaults(func=_cmd_compare_maps)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mitsuba-powder",
+        description="Dry-powder reflectance (Gerardin et al. 2023) for Mitsuba 3.",
+        formatter_class=_HelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"mitsuba-powder {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    _add_info_parser(sub)
+    _add_render_parser(sub)
+    _add_albedo_parser(sub)
+    _add_colour_parser(sub)
+    _add_fit_parser(sub)
+    _add_simulate_parser(sub)
+    _add_compare_models_parser(sub)
+    _add_render_gonio_parser(sub)
+    _add_compare_photo_parser(sub)
+    _add_compare_maps_parser(sub)
+    _add_fit_maps_parser(sub)
+    _add_relight_parser(sub)
+    for command in sub.choices.values():
+        command.formatter_class = _HelpFormatter
+    return parser
