@@ -1,5 +1,5 @@
 """The independent reference fit (tests/oracles/fit.py) that the product's fitter is judged
-against (issue 10) works: its Fresnel tau_o matches docs/model.md's reference values, and its
+against works: its Fresnel tau_o matches docs/model.md's reference values, and its
 multi-start least squares recovers known parameters from data that tests/oracles/model.py's model
 generates at PTFE geometries (a subset of measurements/ptfe_germer2017.csv)."""
 

@@ -1,4 +1,4 @@
-"""IPAG goniometer files (SHINE / SHADOWS) and SSHADE conventions (issue 14).
+"""IPAG goniometer files (SHINE / SHADOWS) and SSHADE conventions.
 
 Every file here is generated in tmp_path, from the model or by hand: no one's data is shipped.
 """

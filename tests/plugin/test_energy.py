@@ -1,4 +1,4 @@
-"""Energy (issue 15): the white furnace of a white powder in ``energy="conserving"`` mode over
+"""Energy: the white furnace of a white powder in ``energy="conserving"`` mode over
 kappa/k0, g, tau_o and incidence; the two modes agree in the narrow-cone regime; the regime
 warning at load time; eval_pdf, sample weights, chi-square and gradients in conserving mode."""
 
@@ -23,7 +23,7 @@ from helpers import (
 LAMBDA_UM = 0.7
 K0 = 2.0 * np.pi / LAMBDA_UM  # 1/um, mono variants at 700 nm
 
-# The furnace grid (issue 15): kappa/k0 from 1e-3 to 10, g from -0.9 to 0.9, tau_o from 0 to
+# The furnace grid: kappa/k0 from 1e-3 to 10, g from -0.9 to 0.9, tau_o from 0 to
 # 100, incidences 0-85 degrees
 KAPPA_OVER_K0 = (1e-3, 1e-2, 0.05, 0.25, 1.0, 10.0)
 G_VALUES = (-0.9, 0.0, 0.9)

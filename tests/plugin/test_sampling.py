@@ -146,7 +146,7 @@ def test_chi2_detects_a_wrong_pdf(tmp_path, monkeypatch):
 
 
 # --------------------------------------------------------------------------------------
-#  The sweep of issue 11: surface lobes from very wide (l_c = 0.01 um) to very narrow
+#  The sweep: surface lobes from very wide (l_c = 0.01 um) to very narrow
 #  (l_c = 100 um, sigma = 0.02), incidences up to 89 degrees, both specular models, several
 #  `lobes` choices. Every lobe is truncated at the horizon, so no sample is lost: the
 #  histogram holds all samples and the pdf integrates to 1. Without the volume terms (single
@@ -171,7 +171,7 @@ def _sweep():
                 cases.append((f"gauss_s{sigma:g}_{theta_i:g}_{lobes}",
                               {**SWEEP_BASE, "amplitude_surface": 0.5, "specular": "gaussian",
                                "sigma": sigma, "lobes": lobes}, theta_i))
-    # other `lobes` choices, and the configurations named in issue 11
+    # other `lobes` choices, and the configurations of the sweep above
     cases += [
         ("hs_coherent_surface_75", {**SWEEP_BASE, "amplitude_surface": 0.05,
                                     "correlation_length": 4.0, "lobes": "coherent,surface"},

@@ -352,7 +352,7 @@ def test_per_pixel_grain_radius_is_recovered():
 
 
 def _grain_regions_fit(size: int, tolerance: float, normal_deg: float):
-    """SYNTHETIC capture of issue 13: four regions of different hematite grain radius,
+    """SYNTHETIC capture (docs/rti.md): four regions of different hematite grain radius,
     amplitude_volume and extinction, a relief, 40 lights of which 8 lie 2-8 degrees from the
     camera (the coherent cone), 1 % noise (of full scale, the brightest clean value 0.9);
     radius, A_v and extinction fitted per pixel with the normal, every fifth light held out."""
@@ -385,7 +385,7 @@ def _grain_regions_fit(size: int, tolerance: float, normal_deg: float):
 
 
 def test_grain_regions_recovered_with_lights_near_the_camera():
-    """Issue 13's synthetic bar at 32 x 32 (the 256 x 256 run is the slow test below).
+    """The synthetic bar of docs/rti.md at 32 x 32 (the 256 x 256 run is the slow test below).
     Measured: region medians within 4 % (radius 2.4 %, A_v 3.9 %, extinction 2.3 % in the
     darkest region, < 1 % elsewhere), normal medians < 0.5 degrees, held-out RMS 1.03 x the
     noise. The issue's bar: 5 % and 2 degrees."""
