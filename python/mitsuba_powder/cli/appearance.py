@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..plugin import registry
 from .common import _parse_define, _value
 
 
@@ -16,7 +17,7 @@ def _cmd_colour(args: argparse.Namespace) -> int:
     if (args.radius2 is None) != (args.fraction2 is None):
         raise ValueError("give both --radius2 and --fraction2, or neither")
     model = {}
-    if args.grains != "sphere":
+    if args.grains != registry.DEFAULTS["grains"]:
         model["grains"] = args.grains
     if args.agglomerate_radius is not None:
         model["agglomerate_radius"] = args.agglomerate_radius

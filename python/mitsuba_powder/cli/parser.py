@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..plugin import registry
 from .appearance import _cmd_albedo, _cmd_colour
 from .fitting import _cmd_compare_models, _cmd_fit, _cmd_simulate
 from .rendering import _cmd_compare_photo, _cmd_info, _cmd_render, _cmd_render_gonio
@@ -165,18 +166,21 @@ def _add_albedo_parser(sub: argparse._SubParsersAction) -> None:
 def _add_colour_parser(sub: argparse._SubParsersAction) -> None:
     """The ``colour`` command."""
     p = sub.add_parser("colour", help="albedo, tau_o and colour of a powder from its grains")
-    p.add_argument("--radius", type=float, default=0.017, help="grain radius, um")
+    p.add_argument("--radius", type=float, default=float(registry.DEFAULTS["radius"]),
+                   help="grain radius, um")
     p.add_argument("--radius2", type=float, default=None, help="second population radius, um")
     p.add_argument("--fraction2", type=float, default=None,
                    help="volume fraction of the second population")
-    p.add_argument("--material", default="hematite",
-                   help="hematite, magnetite or a refractiveindex.info YAML file")
-    p.add_argument("--grains", default="sphere", choices=["sphere", "agglomerate", "slab"],
+    p.add_argument("--material", default=registry.DEFAULTS["material"],
+                   help=f"{', '.join(registry.MATERIALS)} or a refractiveindex.info YAML file")
+    p.add_argument("--grains", default=registry.DEFAULTS["grains"],
+                   choices=list(registry.GRAIN_MODELS),
                    help="grain model (docs/powder.md, Grain models)")
     p.add_argument("--agglomerate-radius", type=float, default=None,
                    help="agglomerate radius, um (--grains agglomerate)")
     p.add_argument("--agglomerate-fill", type=float, default=None,
-                   help="volume fill of crystallites in an agglomerate (default 0.5)")
+                   help="volume fill of crystallites in an agglomerate (default "
+                        f"{registry.DEFAULTS['agglomerate_fill']:g})")
     p.add_argument("--mixing", default=None, choices=["bruggeman", "maxwell_garnett"],
                    help="effective-medium rule of an agglomerate (default bruggeman)")
     p.add_argument("--samples", type=int, default=4096, help="quadrature nodes")

@@ -43,6 +43,7 @@ import numpy as np
 
 from .._checks import check_range
 from ..io.measurements import Measurements
+from ..plugin import registry
 from ..plugin.brf import VARIANT, PowderBRF, batch_variant
 from ..plugin.grains import GRAIN_VARIABLES, GrainOptics
 from ..variants import use_variant
@@ -96,7 +97,7 @@ def default_free(data: Measurements, fixed: dict | None = None) -> list[str]:
     (it comes from them)."""
     fixed = fixed or {}
     if len(data.wavelengths()) > 1:
-        size = "agglomerate_radius" if fixed.get("grains") == "agglomerate" else "radius"
+        size = registry.grain_size(fixed.get("grains", registry.DEFAULTS["grains"]))
         return [size if n == "radius" else n for n in DEFAULT_FREE
                 if (size if n == "radius" else n) not in fixed]
     given = any(k in fixed for k in GRAIN_VARIABLES + GRAIN_SETTINGS + ("albedo",))
@@ -173,7 +174,7 @@ def _starts(problem: Problem, count: int, seed: int) -> np.ndarray:
     free, it runs over a log grid of its whole range (:data:`PROFILE_RADII` values, each with
     the same number of starts): every branch of rho(r) is tried."""
     y0 = sobol_starts(problem.lower, problem.upper, count, seed)
-    size = next((n for n in ("radius", "agglomerate_radius") if n in problem.free), None)
+    size = next((n for n in registry.GRAIN_SIZES if n in problem.free), None)
     if size is not None:
         j = problem.index(size)
         spec = FITTABLE[size]
@@ -288,8 +289,9 @@ def _optics(problem: Problem) -> dict:
                                                            problem.tau_o)}
     default = not any(k in fixed or k in problem.free for k in ("material", "eta", "k",
                                                                 "tau_o"))
-    if default and "hematite" not in " ".join(problem.data.comments).lower():
-        out["notice"] = ("the grain material is the default, hematite: it sets tau_o (and "
+    material = registry.DEFAULTS["material"]
+    if default and material not in " ".join(problem.data.comments).lower():
+        out["notice"] = (f"the grain material is the default, {material}: it sets tau_o (and "
                          "the albedo when the radius is used); if the sample is not hematite, "
                          "give material=..., eta=... and k=..., or tau_o=...")
     return out

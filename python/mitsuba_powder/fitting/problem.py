@@ -14,12 +14,13 @@ import math
 import numpy as np
 
 from ..io.measurements import Measurements
+from ..plugin import registry
 from ..plugin.brf import BatchBRF, engine_properties
 from ..plugin.grains import GRAIN_VARIABLES, GrainOptics
 from .variables import FITTABLE, REGIMES, VariableLayout
 
 #: The plugin's default radius (um), used when neither fitted nor given
-DEFAULT_RADIUS = 0.017
+DEFAULT_RADIUS = float(registry.DEFAULTS["radius"])
 
 #: Properties that only configure the grain model (not fitted)
 GRAIN_SETTINGS = ("grains", "mixing")
@@ -63,25 +64,9 @@ def _check_free(free: list[str], fixed: dict) -> None:
 
 
 def _check_grain_model(free: list[str], fixed: dict) -> None:
-    """The grain properties each model takes (as the plugin's constructor checks them)."""
-    model = fixed.get("grains", "sphere")
-    used = set(free) | set(fixed)
-    agglomerate = ("agglomerate_radius", "agglomerate_fill", "mixing")
-    if model != "agglomerate":
-        extra = [n for n in agglomerate if n in used]
-        if extra:
-            raise ValueError(f"{extra} are used only with grains = 'agglomerate' (grains = "
-                             f"{model!r}); set grains=agglomerate")
-        return
-    if "agglomerate_radius" not in used:
-        raise ValueError("grains = 'agglomerate' needs agglomerate_radius (free or fixed, um)")
-    if "radius" in free:
-        raise ValueError("radius is the crystallite radius with grains = 'agglomerate' and "
-                         "does not enter the albedo: fit agglomerate_radius (and "
-                         "agglomerate_fill) instead")
-    two = [n for n in ("radius2", "fraction2") if n in used]
-    if two:
-        raise ValueError(f"{two} cannot be used with grains = 'agglomerate' (one population)")
+    """The grain properties each model takes (the plugin's rules, from its registry)."""
+    registry.check_grain_model(fixed.get("grains", registry.DEFAULTS["grains"]),
+                               set(free) | set(fixed), free)
 
 
 # ----------------------------------------------------------------- albedo sources

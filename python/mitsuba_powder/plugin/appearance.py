@@ -16,6 +16,7 @@ import numpy as np
 
 from .._checks import check_range
 from ..variants import use_variant
+from . import registry
 
 #: Default wavelength grid (nm) of the reported spectra
 WAVELENGTHS_NM = np.arange(360.0, 831.0, 5.0)
@@ -153,10 +154,10 @@ def colour_of_spectrum(wavelengths_nm: np.ndarray, reflectance: np.ndarray
 
 
 def powder_colour(
-    radius: float = 0.017,
+    radius: float = float(registry.DEFAULTS["radius"]),
     radius2: float | None = None,
     fraction2: float | None = None,
-    material: str = "hematite",
+    material: str = str(registry.DEFAULTS["material"]),
     wavelengths_nm: np.ndarray = WAVELENGTHS_NM,
     samples: int = 4096,
     **properties,

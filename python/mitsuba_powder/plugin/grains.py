@@ -25,23 +25,22 @@ from pathlib import Path
 import numpy as np
 
 from .. import _optics
-
-_DATA = Path(__file__).resolve().parents[1] / "data" / "optical_constants"
+from . import registry
 
 #: Grain models of the plugin's ``grains`` property (docs/model.md, "Grain models")
-GRAIN_MODELS = ("sphere", "agglomerate", "slab")
+GRAIN_MODELS = tuple(registry.GRAIN_MODELS)
 
 #: Effective-medium rules of the ``mixing`` property
 MIXING_RULES = ("bruggeman", "maxwell_garnett")
 
 #: The fittable grain properties, in the order of the derivative columns of
 #: :meth:`GrainOptics.albedo` (and of ``_optics.albedo_table``)
-GRAIN_VARIABLES = ("radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill")
+GRAIN_VARIABLES = registry.GRAIN_VARIABLES
 
 #: The plugin's default ``agglomerate_fill``
-DEFAULT_FILL = 0.5
+DEFAULT_FILL = float(registry.DEFAULTS["agglomerate_fill"])
 #: The plugin's default grain material (its ``material`` property)
-DEFAULT_MATERIAL = "hematite"
+DEFAULT_MATERIAL = str(registry.DEFAULTS["material"])
 
 
 class GrainOptics:
@@ -59,8 +58,8 @@ class GrainOptics:
     """
 
     def __init__(self, properties: dict):
-        self.grains = properties.get("grains", "sphere")
-        self.mixing = properties.get("mixing", "bruggeman")
+        self.grains = properties.get("grains", registry.DEFAULTS["grains"])
+        self.mixing = properties.get("mixing", registry.DEFAULTS["mixing"])
         for name, value, valid in (("grains", self.grains, GRAIN_MODELS),
                                    ("mixing", self.mixing, MIXING_RULES)):
             if value not in valid:
@@ -84,13 +83,15 @@ class GrainOptics:
                           np.array([k, k], dtype=float))
             return
         material = properties.get("material", DEFAULT_MATERIAL)
-        if material == "hematite":
-            wl, n, k = _optics.hematite_average(str(_DATA / "hematite_Querry-o.yml"),
-                                                str(_DATA / "hematite_Querry-e.yml"))
-            self.source = "hematite (Querry 1985, orientation average)"
-        elif material == "magnetite":
-            wl, n, k = _optics.load_optical_constants(str(_DATA / "magnetite_Querry.yml"))
-            self.source = "magnetite (Querry 1985)"
+        if material in registry.MATERIALS:
+            files = registry.material_files(material)
+            names = ", ".join(f.name for f in files)
+            if len(files) == 2:  # a uniaxial crystal: ordinary and extraordinary indices
+                wl, n, k = _optics.hematite_average(*(str(f) for f in files))
+                self.source = f"{material} (orientation average of {names})"
+            else:
+                wl, n, k = _optics.load_optical_constants(str(files[0]))
+                self.source = f"{material} ({names})"
         elif isinstance(material, str) and material.endswith((".yml", ".yaml")):
             if not Path(material).is_file():
                 raise ValueError(f"material = {material!r}: no such file")
@@ -98,8 +99,8 @@ class GrainOptics:
             self.source = material
         else:
             raise ValueError(f"material = {material!r} is not valid; valid values are "
-                             "hematite, magnetite or the path of a refractiveindex.info YAML "
-                             "file (.yml)")
+                             f"{', '.join(registry.MATERIALS)} or the path of a "
+                             "refractiveindex.info YAML file (.yml)")
         self.table = (np.asarray(wl, dtype=float), np.asarray(n, dtype=float),
                       np.asarray(k, dtype=float))
 

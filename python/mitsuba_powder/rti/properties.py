@@ -10,6 +10,7 @@ import numpy as np
 
 from ..fitting.fit import FITTABLE
 from ..fitting.optimise import ParamSpec
+from ..plugin import registry
 
 __all__ = ["FREE_PROPERTIES", "GRAIN_MAPS", "GrainAlbedo", "MAP_DEFAULT_FREE",
            "MAP_GRAIN_SETTINGS", "MAP_PROPERTIES", "SLOPE_LIMIT", "SPECS", "grain_map_name",
@@ -22,7 +23,7 @@ MAP_PROPERTIES = ("amplitude_volume", "g", "extinction", "tau_o", "thickness",
 #: Grain sizes that may vary per pixel instead of the albedo: the albedo per channel is then
 #: the grains' (``radius`` of spheres or slab grains, ``agglomerate_radius``), from
 #: :class:`GrainAlbedo`
-GRAIN_MAPS = ("radius", "agglomerate_radius")
+GRAIN_MAPS = registry.GRAIN_SIZES
 
 #: Properties the per-pixel fit can free besides the normal and the albedo (per channel)
 FREE_PROPERTIES = ("albedo",) + MAP_PROPERTIES + GRAIN_MAPS
@@ -94,7 +95,7 @@ def property_map(name: str, value, shape: tuple[int, int]) -> np.ndarray:
 def grain_map_name(settings: Mapping) -> str:
     """The per-pixel grain size of these settings: ``agglomerate_radius`` for agglomerates,
     else ``radius``."""
-    return "agglomerate_radius" if settings.get("grains") == "agglomerate" else "radius"
+    return registry.grain_size(settings.get("grains", registry.DEFAULTS["grains"]))
 
 
 class GrainAlbedo:
@@ -119,13 +120,14 @@ class GrainAlbedo:
         if name not in GRAIN_MAPS:
             raise ValueError(f"{name!r} is not a per-pixel grain size; choose among "
                              f"{GRAIN_MAPS}")
-        model = settings.get("grains", "sphere")
-        if (name == "agglomerate_radius") != (model == "agglomerate"):
-            need = "agglomerate" if name == "agglomerate_radius" else "sphere or slab"
+        model = settings.get("grains", registry.DEFAULTS["grains"])
+        models = [m for m, rules in registry.GRAIN_MODELS.items() if rules["size"] == name]
+        if model not in models:
+            need = " or ".join(models)
             raise ValueError(f"a per-pixel {name} needs grains = {need} (got grains = "
                              f"{model!r})")
         self.name = name
-        wl = settings.get("rgb_wavelengths", (611.3, 549.1, 464.3))
+        wl = settings.get("rgb_wavelengths", registry.DEFAULTS["rgb_wavelengths"])
         if isinstance(wl, str):
             wl = [float(v) for v in wl.replace(",", " ").split()]
         self.wavelengths = [float(v) for v in wl]
@@ -148,7 +150,7 @@ class GrainAlbedo:
         """The plugin's albedo (and derivatives) of grains of size r, directly."""
         if self.name == "radius":
             return self._optics.albedo(self.wavelengths, r, derivatives=derivatives)
-        crystallite = float(self._settings.get("radius", 0.017))
+        crystallite = float(self._settings.get("radius", registry.DEFAULTS["radius"]))
         return self._optics.albedo(self.wavelengths, np.full(len(r), crystallite),
                                    derivatives=derivatives, agglomerate_radius=r,
                                    agglomerate_fill=self._settings.get("agglomerate_fill"))

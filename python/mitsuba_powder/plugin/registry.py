@@ -1,0 +1,102 @@
+"""The plugin's property registry as Python sees it: defaults, ranges, built-in materials and
+grain models, read from the C++ tables the plugin itself parses with
+(``src/bsdfs/powder_registry.h``, through :mod:`mitsuba_powder._optics`), so that no rule or
+default of the plugin is written a second time in Python.
+
+Sizes are in micrometres, as the plugin's properties.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+from .. import _optics
+
+__all__ = ["DEFAULTS", "GRAIN_MODELS", "GRAIN_SIZES", "GRAIN_VARIABLES", "MATERIALS", "RANGES",
+           "check_grain_model", "grain_size", "material_files", "second_population"]
+
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+#: {property: default} of every plugin property that has one (numbers and strings)
+DEFAULTS: dict[str, float | str] = dict(_optics.property_defaults())
+#: {property: (lower, upper)} valid range of every numeric property
+RANGES: dict[str, tuple[float, float]] = dict(_optics.property_ranges())
+#: names of the built-in grain materials (the ``material`` property)
+MATERIALS: tuple[str, ...] = tuple(_optics.materials())
+#: {grain model: {"size", "allowed", "required", "two_populations"}} (the ``grains`` property)
+GRAIN_MODELS: dict[str, dict] = {name: dict(rules)
+                                 for name, rules in _optics.grain_models().items()}
+#: the per-grain size property of some grain model, in the models' order
+GRAIN_SIZES: tuple[str, ...] = tuple(dict.fromkeys(r["size"] for r in GRAIN_MODELS.values()))
+#: the numeric grain properties of every model, in the order of the derivative columns of
+#: ``_optics.albedo_table`` (each model's allowed properties in turn, numbers only)
+GRAIN_VARIABLES: tuple[str, ...] = tuple(dict.fromkeys(
+    name for rules in GRAIN_MODELS.values() for name in rules["allowed"] if name in RANGES))
+#: the properties of a second grain population
+SECOND_POPULATION = ("radius2", "fraction2")
+
+
+def material_files(material: str) -> list[Path]:
+    """The optical-constant files of a built-in material (several: an orientation average).
+
+    Raises:
+        ValueError: ``material`` is not built in.
+    """
+    files = _optics.material_files()
+    if material not in files:
+        raise ValueError(f"material = {material!r} is not built in; built-in materials are "
+                         f"{', '.join(MATERIALS)}")
+    return [_PACKAGE / f for f in files[material]]
+
+
+def grain_size(grains: str) -> str:
+    """The property holding the size of one grain of model ``grains`` (``radius`` or
+    ``agglomerate_radius``).
+
+    Raises:
+        ValueError: an unknown grain model.
+    """
+    if grains not in GRAIN_MODELS:
+        raise ValueError(f"grains = {grains!r} is not valid; valid values are "
+                         f"{', '.join(GRAIN_MODELS)}")
+    return GRAIN_MODELS[grains]["size"]
+
+
+def second_population(grains: str) -> bool:
+    """Whether grains of model ``grains`` may have a second population (radius2, fraction2)."""
+    return bool(GRAIN_MODELS[grains]["two_populations"])
+
+
+def check_grain_model(grains: str, used: Iterable[str], free: Iterable[str] = ()) -> None:
+    """The grain properties a model takes, as the plugin's constructor checks them; ``used``:
+    every property given (free or fixed), ``free``: those to be fitted (a model's crystallite
+    ``radius`` that does not enter the albedo cannot be).
+
+    Raises:
+        ValueError: a property of another model, a required one missing, a fitted radius
+            that is not the grain size, or a second population where the model has one.
+    """
+    if grains not in GRAIN_MODELS:
+        return  # the grain optics name the valid models
+    rules, used, free = GRAIN_MODELS[grains], set(used), set(free)
+    grain_properties = dict.fromkeys(
+        name for r in GRAIN_MODELS.values() for name in r["allowed"])
+    extra = [n for n in grain_properties if n in used and n not in rules["allowed"]
+             and n not in SECOND_POPULATION]
+    if extra:
+        owner = next(m for m, r in GRAIN_MODELS.items() if extra[0] in r["allowed"])
+        raise ValueError(f"{extra} are used only with grains = {owner!r} (grains = "
+                         f"{grains!r}); set grains={owner}")
+    missing = [n for n in rules["required"] if n not in used]
+    if missing:
+        raise ValueError(f"grains = {grains!r} needs {', '.join(missing)} (free or fixed, um)")
+    size = rules["size"]
+    if size != "radius" and "radius" in free:
+        others = [n for n in rules["allowed"] if n not in ("radius", size) and n in RANGES]
+        raise ValueError(f"radius is the crystallite radius with grains = {grains!r} and "
+                         f"does not enter the albedo: fit {size} (and {' and '.join(others)}) "
+                         "instead")
+    two = [n for n in SECOND_POPULATION if n in used]
+    if two and not rules["two_populations"]:
+        raise ValueError(f"{two} cannot be used with grains = {grains!r} (one population)")
