@@ -8,6 +8,16 @@ from .common import _load_data, _parse_define, _value
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
+    from ..fitting.figure_process import FigureProcess
+
+    if args.figures == "none":
+        return _fit(args, None)
+    with FigureProcess() as process:  # imports matplotlib while the optimiser runs
+        return _fit(args, process)
+
+
+def _fit(args: argparse.Namespace, process) -> int:
+    """``fit``: load, fit, report (figures drawn by ``process`` when given)."""
     import numpy as np
 
     from ..fitting.fit import default_free, fit, predict
@@ -45,7 +55,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     held = None
     if held_out is not None and len(held_out):
         held = (held_out, predict(result, held_out))
-    path = write_report(result, args.out, held, figures=args.figures)
+    path = write_report(result, args.out, held, figures=args.figures, process=process)
     for name in result.free:
         keys = [k for k in result.uncertainties if k == name or k.startswith(name + "@")]
         for k in keys:
