@@ -8,20 +8,19 @@ from .common import _load_data, _parse_define, _value
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
+    from contextlib import nullcontext
+
     from ..fitting.figure_process import FigureProcess
 
-    if args.figures == "none":
-        return _fit(args, None)
-    with FigureProcess() as process:  # imports matplotlib while the optimiser runs
-        return _fit(args, process)
+    data, held_out = _fit_data(args)
+    # started now, the drawing process imports matplotlib while the optimiser runs
+    with FigureProcess() if args.figures != "none" else nullcontext() as process:
+        return _fit(args, data, held_out, process)
 
 
-def _fit(args: argparse.Namespace, process) -> int:
-    """``fit``: load, fit, report (figures drawn by ``process`` when given)."""
+def _fit_data(args: argparse.Namespace):
+    """``fit``'s measurements: (those to fit, those held out or None)."""
     import numpy as np
-
-    from ..fitting.fit import default_free, fit, predict
-    from ..fitting.report import write_report
 
     data = _load_data(args.data, args)
     if args.wavelength:
@@ -44,6 +43,15 @@ def _fit(args: argparse.Namespace, process) -> int:
                              f"({np.unique(data.theta_i).tolist()})")
         held_out = data.subset(~mask)
         data = data.subset(mask)
+    return data, held_out
+
+
+def _fit(args: argparse.Namespace, data, held_out, process) -> int:
+    """``fit``: fit ``data``, predict ``held_out``, report (figures drawn by ``process`` when
+    given)."""
+    from ..fitting.fit import default_free, fit, predict
+    from ..fitting.report import write_report
+
     fixed = dict(_parse_define(d) for d in args.set)
     fixed = {k: _value(v) for k, v in fixed.items()}
     free = ([n.strip() for n in args.free.split(",")] if args.free else
