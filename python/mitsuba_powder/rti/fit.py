@@ -98,7 +98,7 @@ from .properties import (
 from .result import MapsResult
 from .starts import PixelStarts
 
-__all__ = ["GAIN_MODES", "fit_maps", "max_correlation_length"]
+__all__ = ["GAIN_MODES", "fit_light_distance", "fit_maps", "max_correlation_length"]
 
 #: Gain modes of :func:`fit_maps`
 GAIN_MODES = ("fit", "fixed")
@@ -583,6 +583,32 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         else "given")
     result.fit_settings["light_distance_scan"] = scan
     return result
+
+
+def fit_light_distance(images: np.ndarray, directions: np.ndarray,
+                       mask: np.ndarray | None = None, progress: Callable[[str], None] | None
+                       = None, **options) -> tuple[float, dict]:
+    """One light distance for the whole dome fitted to a capture, without the maps
+    (:mod:`mitsuba_powder.rti.distance`; what ``fit_maps(light_distance="fit")`` does first).
+
+    Args:
+        images, directions, mask, progress: as :func:`fit_maps`.
+        options: the other keyword arguments of :func:`fit_maps` (``free``, ``fixed``,
+            ``gains``, ``initial_gains``, ``rounds``, ...), used by the polish.
+
+    Returns:
+        r in image widths (``inf`` when distant lights fit best) and the scan's record
+        (``inverse_distance`` u = 1/r, 1/image width, and the Lambertian ``cost`` per grid
+        point; the powder fit's cost per polish evaluation).
+    """
+    names = ("gains", "max_iterations", "rounds", "saturation", "shadow_ratio",
+             "shadow_floor", "max_lanes")
+    defaults = {"gains": "fit", "max_iterations": 30, "rounds": 3, "saturation": 0.99,
+                "shadow_ratio": 0.5, "shadow_floor": 0.03, "max_lanes": MAX_LANES}
+    checked = {n: options.get(n, defaults[n]) for n in names}
+    data = _set_up(images, directions, options.get("free"), mask, options.get("fixed"),
+                   options.get("initial_gains"), checked)
+    return _fit_distance(images, data, {**defaults, **options}, _Log(progress))
 
 
 def _fit_distance(images: np.ndarray, data: _FitData, refit: dict, log: _Log
