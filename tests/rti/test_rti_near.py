@@ -218,11 +218,8 @@ def test_cli_bad_values_are_named(capture_dir, tmp_path, capsys, extra, fragment
     assert not (tmp_path / "o").exists()
 
 
-def test_cli_positions_need_the_pixel_size_and_mixed_lp_is_refused(capture_dir, tmp_path,
-                                                                    capsys):
-    assert main(["fit-maps", str(capture_dir / "pos.lp"), "--out", str(tmp_path / "o"),
-                 "--encoding", "linear"]) != 0
-    assert "give image_width" in capsys.readouterr().err
+def test_cli_mixed_lp_is_refused(capture_dir, tmp_path, capsys):
+    """With --pixel-size an .lp is read as positions or as directions, never a mix."""
     lines = (capture_dir / "pos.lp").read_text().splitlines()
     unit = (capture_dir / "dirs.lp").read_text().splitlines()
     mixed = tmp_path / "mixed.lp"

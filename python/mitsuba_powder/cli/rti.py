@@ -49,8 +49,9 @@ def _light_distance(args: argparse.Namespace, capture) -> tuple[object, str]:
         check_distance(value, (h, w), "--light-distance")
     elif text == "fit":
         value = "fit"
-    _, rig, kind = read_lp_rig(capture.lp_path, "auto",
-                               None if size is None else size * w)
+    if size is None:  # without the positions' unit the vectors are directions (normalised)
+        return value, "directions"
+    _, rig, kind = read_lp_rig(capture.lp_path, "auto", size * w)
     if kind == "positions":
         if text is not None:
             raise ValueError(f"--light-distance = {text!r} was given but {capture.lp_path} "

@@ -349,9 +349,10 @@ def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Pa
     written names goes beside them. Nothing is written over the maps, the ``.lp`` file or the
     photographs it names (:func:`mitsuba_powder.rti.write_images`).
 
-    The ``.lp`` vectors are unit directions (at the fit's light distance unless
-    ``light_distance`` is given, image widths) or light positions (each its own distance; their
-    unit per pixel is ``pixel_size``, default the fit's); the gains are the fit's gain model's.
+    The ``.lp`` vectors are directions (at the fit's light distance unless ``light_distance``
+    is given, image widths), or, when a pixel size is known (``pixel_size``, default the fit's),
+    directions if all are unit and light positions (each its own distance) if none is; the
+    gains are the fit's gain model's.
 
     Returns:
         The paths written.
@@ -363,14 +364,9 @@ def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Pa
         width = result.mask.shape[1]
         fit_r = result.light_distance if np.ndim(result.light_distance) == 0 else math.inf
         r = fit_r if light_distance is None else light_distance
-        try:
-            names, rig, kind = read_lp_rig(lights_lp, "auto",
-                                           None if size is None else size * width)
-        except ValueError as err:
-            if size is not None or "image_width" not in str(err):
-                raise
-            raise ValueError(f"{err} (relight: give --pixel-size, the pixel size in the "
-                             "positions' unit, unless fit.json records it)") from None
+        # without the positions' unit the vectors are directions (normalised), as always
+        names, rig, kind = read_lp_rig(lights_lp, "auto" if size is not None else "directions",
+                                       None if size is None else size * width)
         if kind == "directions":
             rig = rig.with_distance(r)
         images = result.predict(rig.directions, light_distance=rig.distance)
