@@ -189,13 +189,21 @@ def _fit_near(name: str, y: np.ndarray, directions: np.ndarray, m: np.ndarray | 
         wgt = np.ones((k, p)) if m is None else m[:, s:s + p].astype(np.float64)
         gram = np.einsum("kp,kpi,kpj->pij", wgt, a, a)
         rhs = np.einsum("kp,kpi,kpc->pic", wgt, a, y[:, s:s + p].astype(np.float64))
-        cond = np.linalg.cond(gram)
-        if np.any(~np.isfinite(cond) | (cond > 1e12)):
-            q = s + int(np.flatnonzero(~np.isfinite(cond) | (cond > 1e12))[0])
-            raise ValueError(f"the lights at pixel (x={q % shape[1]}, y={q // shape[1]}) do "
-                             f"not determine the {n} functions of baseline {name!r}")
-        coef[:, s:s + p] = np.moveaxis(np.linalg.solve(gram, rhs), 1, 0)
+        coef[:, s:s + p] = _solve(gram, rhs, s, shape[1], f"the lights at pixel {{}} do not "
+                                  f"determine the {n} functions of baseline {name!r}")
     return coef
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray, start: int, width: int, message: str
+           ) -> np.ndarray:
+    """Per-pixel normal equations (P, n, n) x = (P, n, C) -> (n, P, C); an ill-conditioned
+    pixel (from ``start`` in C order of an image ``width`` px wide) raises ``message`` with
+    the pixel in place of ``{}``."""
+    cond = np.linalg.cond(gram)
+    if np.any(~np.isfinite(cond) | (cond > 1e12)):
+        q = start + int(np.flatnonzero(~np.isfinite(cond) | (cond > 1e12))[0])
+        raise ValueError(message.format(f"(x={q % width}, y={q // width})"))
+    return np.moveaxis(np.linalg.solve(gram, rhs), 1, 0)
 
 
 def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
@@ -267,10 +275,7 @@ def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
             wgt = m[:, s:s + _CHUNK].astype(np.float64)  # (K, P)
             gram = np.einsum("kp,ki,kj->pij", wgt, a, a)
             rhs = np.einsum("kp,ki,kpc->pic", wgt, a, y[:, s:s + _CHUNK].astype(np.float64))
-            cond = np.linalg.cond(gram)
-            if np.any(~np.isfinite(cond) | (cond > 1e12)):
-                p = s + int(np.flatnonzero(~np.isfinite(cond) | (cond > 1e12))[0])
-                raise ValueError(f"light_mask: the lights kept at pixel (x={p % w}, y={p // w}) "
-                                 f"do not determine the {n} functions of baseline {name!r}")
-            coef[:, s:s + _CHUNK] = np.moveaxis(np.linalg.solve(gram, rhs), 1, 0)
+            coef[:, s:s + _CHUNK] = _solve(gram, rhs, s, w, "light_mask: the lights kept at "
+                                           f"pixel {{}} do not determine the {n} functions "
+                                           f"of baseline {name!r}")
     return Baseline(name, coef.reshape(n, h, w, c))
