@@ -49,6 +49,21 @@ def _add_capture_options(p: argparse.ArgumentParser, use: str) -> None:
                         "value / full scale is linear (default srgb)")
     p.add_argument("--mask", default=None,
                    help=f"mask image (PNG): pixels above half scale are {use}")
+    _add_light_options(p)
+
+
+def _add_light_options(p: argparse.ArgumentParser, fit: bool = True) -> None:
+    """The lights' distance and the unit of .lp light positions (docs/rti.md, "Near-field
+    lights")."""
+    p.add_argument("--light-distance", default=None, metavar="R",
+                   help="distance of the lights from the image's centre in image widths "
+                        "(> the image's half-diagonal), 'inf' (distant lights)"
+                        + (", or 'fit' (one distance fitted with the gains)" if fit else "")
+                        + "; default inf for an .lp of unit directions, the positions for an "
+                          ".lp of light positions")
+    p.add_argument("--pixel-size", type=float, default=None, metavar="P",
+                   help="size of a pixel in the unit of the .lp light positions (an .lp of "
+                        "positions needs it: the image is P x width wide)")
 
 
 def _add_data_options(p: argparse.ArgumentParser) -> None:
@@ -279,6 +294,15 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
                    help="Levenberg-Marquardt iterations per round")
     p.add_argument("--rounds", type=int, default=3,
                    help="alternations of the per-pixel fit with the gains")
+    p.add_argument("--gain-model", choices=("free", "smooth"), default="free",
+                   help="free: each fitted light keeps its gain, a light not fitted gets the "
+                        "smooth trend of the gains in its direction; smooth: the gains are "
+                        "the trend (with residuals of relative spread --gain-spread)")
+    p.add_argument("--gain-degree", type=int, default=2,
+                   help="degree of the gains' trend, a polynomial in sin(elevation) (0-6)")
+    p.add_argument("--gain-spread", type=float, default=None, metavar="TAU",
+                   help="smooth gains: relative spread of the lights about the trend (e.g. "
+                        "0.02); default none (the gains are the trend)")
     p.set_defaults(func=_cmd_fit_maps)
 
 
@@ -291,6 +315,7 @@ def _add_relight_parser(sub: argparse._SubParsersAction) -> None:
                    help="lights: an .lp file (count, then 'filename lx ly lz' per line)")
     p.add_argument("--out", required=True, help="output folder (one image per .lp line, "
                                                 "the capture's format and bit depth)")
+    _add_light_options(p, fit=False)
     p.set_defaults(func=_cmd_relight)
 
 
@@ -313,6 +338,10 @@ def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
                         "order from 0; default 4)")
     p.add_argument("--no-error-images", action="store_true",
                    help="do not write the per-pixel error maps (PNG)")
+    p.add_argument("--field", choices=("far", "near", "both"), default=None,
+                   help="score each model with distant lights (far), lights at the light "
+                        "distance (near, rows <model>_near) or both (default: both when a "
+                        "finite light distance is given or fitted, else far)")
     p.set_defaults(func=_cmd_compare_maps)
 
 

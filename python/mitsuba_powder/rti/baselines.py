@@ -38,15 +38,22 @@ Bases (per channel; values in the capture's linear units):
   channel is ``|b|``.
 * ``lambertian_clamped``: the same fit (unclamped least squares), predicting ``max(0, b . l)``,
   the attached shadow of a Lambertian surface (docs/rti.md scores both on RealRTI captures).
+
+**Near-field lights** (``light_distance`` r finite, image widths; :mod:`mitsuba_powder.rti.lights`):
+pixel x sees light k from ``d_k(x)`` with the irradiance factor ``s_k(x)``, so each pixel has
+its own design ``A_x[k, j] = s_k(x) B_j(d_k(x))`` (the basis models the value per unit
+irradiance) and solves its own normal equations, batched over pixels.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .checks import check_directions
+from .lights import LightRig, check_distance, light_field, pixel_coordinates
 
 __all__ = ["BASELINES", "Baseline", "basis", "fit_baseline"]
 
@@ -101,6 +108,7 @@ class Baseline:
 
     name: str
     coefficients: np.ndarray
+    light_distance: float = math.inf
 
     @property
     def n_parameters(self) -> int:
@@ -108,9 +116,12 @@ class Baseline:
         return int(self.coefficients.shape[0] * self.coefficients.shape[3])
 
     def predict(self, directions: np.ndarray) -> np.ndarray:
-        """Predicted linear images float32 (K', H, W, C) under K' light directions (K', 3)."""
+        """Predicted linear images float32 (K', H, W, C) under K' light directions (K', 3)
+        (at the fit's light distance)."""
         a = basis(self.name, directions)
         n, h, w, c = self.coefficients.shape
+        if not math.isinf(self.light_distance):
+            return self._predict_near(directions)
         flat = self.coefficients.reshape(n, -1)
         out = np.empty((a.shape[0], flat.shape[1]), dtype=np.float32)
         step = _CHUNK * c
@@ -119,6 +130,20 @@ class Baseline:
         if self.name == "lambertian_clamped":
             np.maximum(out, 0.0, out=out)
         return out.reshape(a.shape[0], h, w, c)
+
+    def _predict_near(self, directions: np.ndarray) -> np.ndarray:
+        """:meth:`predict` with each pixel's own light directions and irradiance factors."""
+        n, h, w, c = self.coefficients.shape
+        k = len(directions)
+        flat = self.coefficients.reshape(n, h * w, c)
+        out = np.empty((k, h * w, c), dtype=np.float32)
+        for s in range(0, h * w, _CHUNK):
+            a = _near_design(self.name, directions, self.light_distance, (h, w), s)
+            out[:, s:s + a.shape[1]] = np.einsum("kpn,npc->kpc", a,
+                                                 flat[:, s:s + a.shape[1]].astype(np.float64))
+        if self.name == "lambertian_clamped":
+            np.maximum(out, 0.0, out=out)
+        return out.reshape(k, h, w, c)
 
     @property
     def normals(self) -> np.ndarray:
@@ -139,8 +164,51 @@ class Baseline:
         return np.linalg.norm(self.coefficients, axis=0).astype(np.float32)
 
 
+def _near_design(name: str, directions: np.ndarray, distance: float, shape: tuple[int, int],
+                 start: int) -> np.ndarray:
+    """(K, P_chunk, n) per-pixel design ``s_k(x) B_j(d_k(x))`` of the pixels from ``start``
+    (C order, at most ``_CHUNK``) for lights at ``distance`` image widths."""
+    check_distance(distance, shape, "light_distance")
+    xy = pixel_coordinates(shape).reshape(-1, 2)[start:start + _CHUNK]
+    dirs, s = light_field(LightRig(check_directions(directions), distance), xy)
+    k, p = s.shape
+    a = basis(name, dirs.reshape(-1, 3)).reshape(k, p, -1)
+    return a * s[:, :, None]
+
+
+def _fit_near(name: str, y: np.ndarray, directions: np.ndarray, m: np.ndarray | None,
+              distance: float, shape: tuple[int, int]) -> np.ndarray:
+    """Coefficients (n, P, C) of a near-field baseline: per-pixel (weighted) normal
+    equations."""
+    k, npix, c = y.shape
+    n = BASELINES[name]
+    coef = np.empty((n, npix, c), dtype=np.float32)
+    for s in range(0, npix, _CHUNK):
+        a = _near_design(name, directions, distance, shape, s)     # (K, P, n)
+        p = a.shape[1]
+        wgt = np.ones((k, p)) if m is None else m[:, s:s + p].astype(np.float64)
+        gram = np.einsum("kp,kpi,kpj->pij", wgt, a, a)
+        rhs = np.einsum("kp,kpi,kpc->pic", wgt, a, y[:, s:s + p].astype(np.float64))
+        coef[:, s:s + p] = _solve(gram, rhs, s, shape[1], f"the lights at pixel {{}} do not "
+                                  f"determine the {n} functions of baseline {name!r}")
+    return coef
+
+
+def _solve(gram: np.ndarray, rhs: np.ndarray, start: int, width: int, message: str
+           ) -> np.ndarray:
+    """Per-pixel normal equations (P, n, n) x = (P, n, C) -> (n, P, C); an ill-conditioned
+    pixel (from ``start`` in C order of an image ``width`` px wide) raises ``message`` with
+    the pixel in place of ``{}``."""
+    cond = np.linalg.cond(gram)
+    if np.any(~np.isfinite(cond) | (cond > 1e12)):
+        q = start + int(np.flatnonzero(~np.isfinite(cond) | (cond > 1e12))[0])
+        raise ValueError(message.format(f"(x={q % width}, y={q // width})"))
+    return np.moveaxis(np.linalg.solve(gram, rhs), 1, 0)
+
+
 def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
-                 light_mask: np.ndarray | None = None) -> Baseline:
+                 light_mask: np.ndarray | None = None,
+                 light_distance: float = math.inf) -> Baseline:
     """Fit baseline ``name`` to every pixel and channel of K images by linear least squares.
 
     Args:
@@ -151,6 +219,8 @@ def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
         light_mask: optional bool (K, H, W): True where light k is used at a pixel (False
             leaves out shadowed or saturated observations); every pixel needs at least n
             lights (n = 6, 9, 3) in a configuration that determines the basis.
+        light_distance: the lights' distance from the image's centre, image widths (beyond
+            the image's half-diagonal); ``inf`` (default): distant lights (module docstring).
 
     Returns:
         A :class:`Baseline`.
@@ -178,6 +248,13 @@ def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
     _, h, w, c = imgs.shape
     y = imgs.reshape(k, h * w, c)
     coef = np.empty((n, h * w, c), dtype=np.float32)
+    m = None if light_mask is None else np.asarray(light_mask, dtype=bool)
+    if not math.isinf(light_distance):
+        if m is not None and m.shape != (k, h, w):
+            raise ValueError(f"light_mask of shape {m.shape}: expected ({k}, {h}, {w})")
+        coef = _fit_near(name, y, directions, None if m is None else m.reshape(k, -1),
+                         float(light_distance), (h, w))
+        return Baseline(name, coef.reshape(n, h, w, c), float(light_distance))
     if light_mask is None:
         pinv = np.linalg.pinv(a)  # (n, K)
         for s in range(0, h * w, _CHUNK):
@@ -198,10 +275,7 @@ def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
             wgt = m[:, s:s + _CHUNK].astype(np.float64)  # (K, P)
             gram = np.einsum("kp,ki,kj->pij", wgt, a, a)
             rhs = np.einsum("kp,ki,kpc->pic", wgt, a, y[:, s:s + _CHUNK].astype(np.float64))
-            cond = np.linalg.cond(gram)
-            if np.any(~np.isfinite(cond) | (cond > 1e12)):
-                p = s + int(np.flatnonzero(~np.isfinite(cond) | (cond > 1e12))[0])
-                raise ValueError(f"light_mask: the lights kept at pixel (x={p % w}, y={p // w}) "
-                                 f"do not determine the {n} functions of baseline {name!r}")
-            coef[:, s:s + _CHUNK] = np.moveaxis(np.linalg.solve(gram, rhs), 1, 0)
+            coef[:, s:s + _CHUNK] = _solve(gram, rhs, s, w, "light_mask: the lights kept at "
+                                           f"pixel {{}} do not determine the {n} functions "
+                                           f"of baseline {name!r}")
     return Baseline(name, coef.reshape(n, h, w, c))

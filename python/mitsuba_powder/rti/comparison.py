@@ -80,16 +80,17 @@ def held_out(protocol: str, directions: np.ndarray, phase: int = 4) -> np.ndarra
     return idx
 
 
-def baseline_fitter(name: str) -> Fitter:
-    """The fit callable of baseline ``name`` (``ptm``, ``hsh``, ``lambertian``); the pixel
-    mask is not used by the fit (every pixel is fitted independently)."""
+def baseline_fitter(name: str, light_distance: float = math.inf) -> Fitter:
+    """The fit callable of baseline ``name`` (``ptm``, ``hsh``, ``lambertian``) with lights at
+    ``light_distance`` image widths (``inf``: distant lights); the pixel mask is not used by
+    the fit (every pixel is fitted independently)."""
     if name not in BASELINES:
         raise ValueError(f"model {name!r} is not a baseline; choose among {list(BASELINES)}")
 
     def fit(images: np.ndarray, directions: np.ndarray, mask: np.ndarray | None = None):
-        return fit_baseline(name, images, directions)
+        return fit_baseline(name, images, directions, light_distance=light_distance)
 
-    fit.__name__ = f"fit_{name}"
+    fit.__name__ = f"fit_{name}" + ("" if math.isinf(light_distance) else "_near")
     return fit
 
 
@@ -133,7 +134,8 @@ class Comparison:
 
 
 def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | None = None,
-            protocols: Sequence[str] = PROTOCOLS, phase: int = 4) -> Comparison:
+            protocols: Sequence[str] = PROTOCOLS, phase: int = 4,
+            light_distance: float = math.inf) -> Comparison:
     """Fit each model on the kept lights and score it on the held-out ones, per protocol.
 
     Args:
@@ -143,6 +145,9 @@ def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | Non
             default: all baselines.
         protocols: among :data:`PROTOCOLS`.
         phase: the interpolation protocol's phase (:func:`held_out`).
+        light_distance: the distance of the lights (image widths) that the near-field models
+            (rows ``<model>_near``) use, recorded in the capture's description (``inf``:
+            none).
 
     Returns:
         A :class:`Comparison`.
@@ -191,6 +196,7 @@ def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | Non
         "bit_depth": capture.bit_depth,
         "pixels_scored": int(sel.sum()),
         "interpolation_phase": int(phase),
+        "light_distance": None if math.isinf(light_distance) else float(light_distance),
     }
     return Comparison(rows, info, maps)
 
@@ -205,6 +211,11 @@ def _markdown(comp: Comparison) -> str:
         f"Capture: `{c['lp']}`, {c['lights']} lights, {c['width']} x {c['height']} px, "
         f"{c['channels']} channels, {c['file_format']} {c['bit_depth']} bit, encoding "
         f"`{c['encoding']}`; {c['pixels_scored']} pixels scored.",
+        "",
+        "Lights: distant" + ("." if c.get("light_distance") is None else
+                             f"; rows `<model>_near` model them at r = {c['light_distance']:.4g}"
+                             " image widths from the image's centre (per-pixel directions and"
+                             " 1/d^2 irradiance)."),
         "",
         f"Held-out RMSE in 8-bit levels (0-255) of the {scale}; predictions unclamped "
         "(except lambertian_clamped's).",

@@ -73,7 +73,16 @@ import numpy as np
 
 from ..fitting.optimise import ParamSpec, batch_levenberg_marquardt
 from .checks import check_count, check_directions, check_gains, check_images, check_range
-from .forward import MAX_LANES, VARIANT, PixelEvaluator, normals_of_slopes, pixel_chunks
+from .distance import polish_inverse_distance, scan_inverse_distance, subsample_mask
+from .forward import (
+    MAX_LANES,
+    VARIANT,
+    PixelEvaluator,
+    near_field,
+    normals_of_slopes,
+    pixel_chunks,
+)
+from .gains import GainOptions
 from .problem import PixelProblem, gain_step, gain_system
 from .properties import (
     FREE_PROPERTIES,
@@ -89,7 +98,7 @@ from .properties import (
 from .result import MapsResult
 from .starts import PixelStarts
 
-__all__ = ["GAIN_MODES", "fit_maps", "max_correlation_length"]
+__all__ = ["GAIN_MODES", "fit_light_distance", "fit_maps", "max_correlation_length"]
 
 #: Gain modes of :func:`fit_maps`
 GAIN_MODES = ("fit", "fixed")
@@ -142,6 +151,23 @@ class _FitData:
     shadow_ratio: float
     shadow_floor: float
     max_lanes: int
+    gain_model: GainOptions = GainOptions()
+    field: tuple[np.ndarray, np.ndarray] | None = None  # near-field lights: (P, K, 3), (P, K)
+    light_distance: float | np.ndarray = math.inf        # r in image widths
+
+    def lights(self, s: slice = slice(None)) -> np.ndarray:
+        """The light directions of the pixels ``s``: (K, 3), or (P_s, K, 3) per pixel."""
+        return self.d if self.field is None else self.field[0][s]
+
+    def irradiance(self, s: slice = slice(None)) -> np.ndarray | None:
+        """The irradiance factors (P_s, K) of the pixels ``s``; None for distant lights."""
+        return None if self.field is None else self.field[1][s]
+
+    def light_gains(self, gains: np.ndarray, s: slice = slice(None)) -> np.ndarray:
+        """(1, K, 1) or (P_s, K, 1): the gains times the pixels' irradiance factors."""
+        if self.field is None:
+            return gains[None, :, None]
+        return (gains[None, :] * self.field[1][s])[:, :, None]
 
     @property
     def saturated(self) -> np.ndarray:
@@ -254,7 +280,7 @@ def _held(fixed: Mapping | None, free: list[str], mask: np.ndarray) -> dict:
 
 def _set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | None,
             mask: np.ndarray | None, fixed: Mapping | None, initial_gains: np.ndarray | None,
-            options: Mapping) -> _FitData:
+            options: Mapping, light_distance: float | np.ndarray = math.inf) -> _FitData:
     """Check every input of :func:`fit_maps` (in the order of its arguments) and gather the
     masked pixels' observations."""
     imgs = check_images(images)
@@ -270,7 +296,9 @@ def _set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | No
     others = [n for n in free if n != "albedo" and n not in GRAIN_MAPS]
     obs = np.ascontiguousarray(imgs[:, mask].transpose(1, 0, 2)).astype(np.float64)
     return _FitData(obs=obs, d=d, mask=mask, free=free, others=others, gains=g,
-                    scale=float(np.mean(g)), **held, **checked)
+                    scale=float(np.mean(g)), **held, **checked,
+                    field=near_field(d, light_distance, (h, w), mask),
+                    light_distance=light_distance)
 
 
 # ---------------------------------------------------------------------------
@@ -323,8 +351,11 @@ def _initial_start(starts: PixelStarts, data: _FitData, log: _Log
     wt = (~data.saturated).astype(np.float64)
     for i in range(2):
         y, n0, refl = starts(g, wt, search=i == 1)
-        pred = (np.maximum(n0 @ data.d.T, 0.0)[:, :, None] * refl[:, None, :] / np.pi
-                * g[None, :, None])
+        if data.field is None:
+            cos = np.maximum(n0 @ data.d.T, 0.0)
+        else:
+            cos = np.maximum(np.einsum("pki,pi->pk", data.field[0], n0), 0.0)
+        pred = cos[:, :, None] * refl[:, None, :] / np.pi * data.light_gains(g)
         wt = data.flags(pred)
     log(f"start: Lambertian photometric stereo on {len(data.obs)} pixels, "
         f"{int(np.sum(wt == 0))} observations flagged")
@@ -344,6 +375,7 @@ class _State:
     weights: np.ndarray     # (P, K) observation weights in {0, 1}
     value: np.ndarray       # (P, K, 3) the model without gain at the fitted rows
     chunks: list[slice]
+    information: np.ndarray | None = None  # (K,) diagonal of the gains' reduced system
     iterations: int = 0
     evaluations: int = 0
 
@@ -353,9 +385,10 @@ def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
                ) -> tuple[np.ndarray, np.ndarray] | None:
     """Fit the pixels ``s`` from ``y_start`` under the current gains; update ``state``; with
     ``with_gains`` return their part of the gains' reduced system."""
-    prob = PixelProblem(ev, data.obs[s], state.weights[s], data.d, state.gains, layout,
+    prob = PixelProblem(ev, data.obs[s], state.weights[s], data.lights(s), state.gains, layout,
                         {n: v[s] for n, v in data.fixed_maps.items()},
-                        None if data.fixed_albedo is None else data.fixed_albedo[s], data.grain)
+                        None if data.fixed_albedo is None else data.fixed_albedo[s], data.grain,
+                        data.irradiance(s))
     y_chunk = y_start[s].copy()
     y_chunk[:, -1] = np.arange(len(y_chunk))
     hold = np.zeros(len(layout) + 1, dtype=bool)
@@ -371,10 +404,13 @@ def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
     part = None
     if with_gains:
         res, jac = prob.jacobian(fitted.y)
-        state.value[s], _ = ev(slopes, albedo, values, data.d)
-        part = gain_system(res, jac[:, :, :-1], state.value[s], prob.sqrt_w)
+        state.value[s], _ = ev(slopes, albedo, values, data.lights(s))
+        # d(residual)/d(g_k) = sqrt(w) s_pk f: the model times the irradiance factors
+        model = (state.value[s] if data.field is None
+                 else state.value[s] * data.field[1][s][:, :, None])
+        part = gain_system(res, jac[:, :, :-1], model, prob.sqrt_w)
     else:
-        state.value[s], _ = ev(slopes, albedo, values, data.d)
+        state.value[s], _ = ev(slopes, albedo, values, data.lights(s))
     state.evaluations += prob.evaluations
     return part
 
@@ -400,7 +436,11 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: _FitData, layout: 
                 reduced = reduced[0] + part[0], reduced[1] + part[1]
         if with_gains:
             state.gains = gain_step(state.gains, *reduced, data.scale)
-        model = state.value * state.gains[None, :, None]
+            state.information = np.diag(reduced[0]).copy()
+            if data.gain_model.mode == "smooth":
+                state.gains = data.gain_model.smooth(data.d, state.gains, state.information,
+                                                     data.scale)
+        model = state.value * data.light_gains(state.gains)
         if not last:
             state.weights = data.flags(model)
         rms = np.sqrt(np.sum(state.weights[:, :, None] * (model - data.obs) ** 2)
@@ -427,12 +467,12 @@ def _result(ev: PixelEvaluator, data: _FitData, layout: list, specs: Mapping[str
         return out
 
     wt, g = state.weights, state.gains
-    prob = PixelProblem(ev, data.obs, wt, data.d, g, layout, data.fixed_maps,
-                        data.fixed_albedo, data.grain)
+    prob = PixelProblem(ev, data.obs, wt, data.lights(), g, layout, data.fixed_maps,
+                        data.fixed_albedo, data.grain, data.irradiance())
     y_all = state.y.copy()
     y_all[:, -1] = np.arange(npix)
     _, slopes, albedo, values, _ = prob.unpack(y_all)
-    resid = (state.value * g[None, :, None] - data.obs) * wt[:, :, None]
+    resid = (state.value * data.light_gains(g) - data.obs) * wt[:, :, None]
     rms_map = np.sqrt(np.sum(resid**2, axis=(1, 2)) / np.maximum(3 * wt.sum(axis=1), 1))
     # a pixel with fewer used observations than variables is not determined: NaN residual
     underdetermined = 3 * wt.sum(axis=1) < len(layout)
@@ -449,12 +489,15 @@ def _result(ev: PixelEvaluator, data: _FitData, layout: list, specs: Mapping[str
         "underdetermined_pixels": int(np.sum(underdetermined)),
         "seconds": time.perf_counter() - t0, "stages": log.stages,
         "fixed": {n: v for n, v in data.fixed.items()
-                  if np.ndim(v) == 0 or isinstance(v, str)}}
+                  if np.ndim(v) == 0 or isinstance(v, str)},
+        "light_distance": _json_distance(data.light_distance),
+        "gain_model": data.gain_model.settings()}
     return MapsResult(
         normals=to_map(normals_of_slopes(slopes), 3), albedo=to_map(albedo, 3),
         maps={n: to_map(v) for n, v in values.items()}, settings=data.settings,
         residual_rms=to_map(rms_map), gains=g, used=used, free=data.free, mask=data.mask,
-        variant=variant, fit_settings=fit_settings)
+        variant=variant, fit_settings=fit_settings, light_distance=data.light_distance,
+        gain_model=data.gain_model.fit(data.d, g, state.information))
 
 
 # ---------------------------------------------------------------------------
@@ -466,8 +509,9 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
              gains: str = "fit", initial_gains: np.ndarray | None = None,
              max_iterations: int = 30, rounds: int = 3, saturation: float = 0.99,
              shadow_ratio: float = 0.5, shadow_floor: float = 0.03, variant: str = VARIANT,
-             max_lanes: int = MAX_LANES, progress: Callable[[str], None] | None = None
-             ) -> MapsResult:
+             max_lanes: int = MAX_LANES, progress: Callable[[str], None] | None = None,
+             light_distance: float | np.ndarray | str = math.inf,
+             gain_model: GainOptions | None = None) -> MapsResult:
     """Fit a normal and powder properties to every pixel of an RTI capture.
 
     Args:
@@ -496,20 +540,105 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         variant: an RGB variant (``llvm_ad_rgb``, ``cuda_ad_rgb``).
         max_lanes: pixels x lights per plugin evaluation (and per optimiser batch) at most.
         progress: called with a line of text after each stage.
+        light_distance: the lights' distance from the image's centre in image widths
+            (:mod:`mitsuba_powder.rti.lights`): ``inf`` (default, distant lights), a number
+            or (K,) beyond the image's half-diagonal, or ``"fit"``: one distance for every
+            light fitted with the gains (:mod:`mitsuba_powder.rti.distance`: a Lambertian
+            scan, then a polish with this fit on a subsample of pixels).
+        gain_model: how the gains generalise to lights not fitted
+            (:class:`~mitsuba_powder.rti.gains.GainOptions`; default ``free``: the fitted
+            gains unchanged, a smooth trend in the light direction for other lights).
 
     Returns:
         A :class:`~mitsuba_powder.rti.result.MapsResult`.
     """
     t0 = time.perf_counter()
-    data = _set_up(images, directions, free, mask, fixed, initial_gains,
-                   {"gains": gains, "max_iterations": max_iterations, "rounds": rounds,
-                    "saturation": saturation, "shadow_ratio": shadow_ratio,
-                    "shadow_floor": shadow_floor, "max_lanes": max_lanes})
+    options = {"gains": gains, "max_iterations": max_iterations, "rounds": rounds,
+               "saturation": saturation, "shadow_ratio": shadow_ratio,
+               "shadow_floor": shadow_floor, "max_lanes": max_lanes}
+    gain_model = GainOptions() if gain_model is None else gain_model
+    log = _Log(progress)
+    scan = None
+    if isinstance(light_distance, str):
+        if light_distance != "fit":
+            raise ValueError(f"light_distance = {light_distance!r} is not valid; give a "
+                             "distance in image widths (> the half-diagonal), inf or 'fit'")
+        data = _set_up(images, directions, free, mask, fixed, initial_gains, options)
+        refit = {"free": free, "fixed": fixed, "gains": gains, "initial_gains": initial_gains,
+                 "variant": variant, "gain_model": gain_model, **options}
+        light_distance, scan = _fit_distance(images, data, refit, log)
+    data = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+                   light_distance)
+    data.gain_model = gain_model
     ev = PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
     layout, specs = _parameter_layout(data)
-    log = _Log(progress)
     starts = PixelStarts(ev, data.obs, data.d, layout, specs, data.free, data.others,
-                         data.grain_name, data.fixed_maps, data.grain, data.max_lanes)
+                         data.grain_name, data.fixed_maps, data.grain, data.max_lanes,
+                         data.field)
     y, wt = _initial_start(starts, data, log)
     state = _alternate(ev, starts, data, layout, y, wt, log)
-    return _result(ev, data, layout, specs, state, variant, log, t0)
+    result = _result(ev, data, layout, specs, state, variant, log, t0)
+    result.fit_settings["light_distance_source"] = (
+        "fitted" if scan is not None else "distant" if np.all(np.isinf(data.light_distance))
+        else "given")
+    result.fit_settings["light_distance_scan"] = scan
+    return result
+
+
+def fit_light_distance(images: np.ndarray, directions: np.ndarray,
+                       mask: np.ndarray | None = None, progress: Callable[[str], None] | None
+                       = None, **options) -> tuple[float, dict]:
+    """One light distance for the whole dome fitted to a capture, without the maps
+    (:mod:`mitsuba_powder.rti.distance`; what ``fit_maps(light_distance="fit")`` does first).
+
+    Args:
+        images, directions, mask, progress: as :func:`fit_maps`.
+        options: the other keyword arguments of :func:`fit_maps` (``free``, ``fixed``,
+            ``gains``, ``initial_gains``, ``rounds``, ...), used by the polish.
+
+    Returns:
+        r in image widths (``inf`` when distant lights fit best) and the scan's record
+        (``inverse_distance`` u = 1/r, 1/image width, and the Lambertian ``cost`` per grid
+        point; the powder fit's cost per polish evaluation).
+    """
+    names = ("gains", "max_iterations", "rounds", "saturation", "shadow_ratio",
+             "shadow_floor", "max_lanes")
+    defaults = {"gains": "fit", "max_iterations": 30, "rounds": 3, "saturation": 0.99,
+                "shadow_ratio": 0.5, "shadow_floor": 0.03, "max_lanes": MAX_LANES}
+    checked = {n: options.get(n, defaults[n]) for n in names}
+    data = _set_up(images, directions, options.get("free"), mask, options.get("fixed"),
+                   options.get("initial_gains"), checked)
+    return _fit_distance(images, data, {**defaults, **options}, _Log(progress))
+
+
+def _fit_distance(images: np.ndarray, data: _FitData, refit: dict, log: _Log
+                  ) -> tuple[float, dict]:
+    """One light distance for the whole dome (:mod:`mitsuba_powder.rti.distance`): the
+    Lambertian scan on a subsample of the mask, then the powder fit's cost polished over the
+    scan's best bracket. Returns r (image widths) and the record for ``fit_settings``."""
+    sub = subsample_mask(data.mask)
+    keep = sub[data.mask]
+    wt = (~data.saturated[keep]).astype(np.float64)
+    us, costs = scan_inverse_distance(data.obs[keep], wt, sub, data.d, data.gains)
+    log(f"light distance: Lambertian scan of u = 1/r on {int(sub.sum())} pixels, best "
+        f"u = {us[int(np.argmin(costs))]:.4g}")
+
+    def cost(u: float) -> float:
+        r = math.inf if u <= 0 else 1.0 / u
+        part = fit_maps(images, data.d, mask=sub, light_distance=r, **refit)
+        rms = part.residual_rms[sub]
+        return float(np.nanmean(rms**2))
+
+    u, seen = polish_inverse_distance(cost, us, costs)
+    r = math.inf if u <= 0 else 1.0 / u
+    log(f"light distance: polished with the powder fit ({len(seen)} fits), r = {r:.5g} "
+        "image widths")
+    return r, {"inverse_distance": us.tolist(), "cost": costs.tolist(),
+               "polish": [{"inverse_distance": a, "cost": b} for a, b in seen]}
+
+
+def _json_distance(r: float | np.ndarray) -> float | list | None:
+    """A light distance for JSON: a number, a list (one per light) or None (inf)."""
+    if np.ndim(r) == 0:
+        return None if math.isinf(float(r)) else float(r)
+    return [None if math.isinf(v) else float(v) for v in np.asarray(r, dtype=np.float64)]

@@ -35,6 +35,7 @@ lights exceeds ``max_lanes``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import drjit as dr
@@ -44,6 +45,7 @@ import numpy as np
 from ..plugin.brf import forward_grad
 from ..variants import use_variant
 from .checks import check_count, check_directions, check_gains, check_normals
+from .lights import LightRig, check_distance, light_field, pixel_coordinates
 from .properties import (
     MAP_GRAIN_SETTINGS,
     MAP_PROPERTIES,
@@ -53,7 +55,7 @@ from .properties import (
     property_map,
 )
 
-__all__ = ["MAX_LANES", "PixelEvaluator", "VARIANT", "normals_of_slopes",
+__all__ = ["MAX_LANES", "PixelEvaluator", "VARIANT", "near_field", "normals_of_slopes",
            "pixel_chunks", "render_capture", "slopes_of_normals"]
 
 #: Default limit of pixels x lights per plugin evaluation (bounds memory: the float64
@@ -111,12 +113,13 @@ class PixelEvaluator:
             slopes: (P, 2) normal slopes ``(n_x / n_z, n_y / n_z)``.
             albedo: (P, 3) single-scattering albedo per channel.
             values: varying property -> (P,) values.
-            directions: (K, 3) unit vectors towards the lights (image frame).
+            directions: (K, 3) unit vectors towards the lights (image frame), or (P, K, 3)
+                one set per pixel (lights at a finite distance, :mod:`.lights`).
             derivatives: any of ``slope_x``, ``slope_y``, ``albedo`` and the varying
                 properties; ``albedo`` gives d(channel c)/d(albedo c) (the channels are
                 independent).
         """
-        p, k = len(slopes), len(directions)
+        p, k = len(slopes), directions.shape[-2]
         grads: dict[str, np.ndarray] = {}
         with use_variant(self.variant):
             pix = dr.arange(mi.UInt32, p * k) // k
@@ -132,9 +135,13 @@ class PixelEvaluator:
             for name in derivatives:
                 dr.enable_grad(sources[name])
             lanes = {name: dr.gather(type(src), src, pix) for name, src in sources.items()}
-            table = mi.Vector3f(*[mi.Float(directions[:, c].astype(np.float32))
-                                  for c in range(3)])
-            lights = dr.gather(mi.Vector3f, table, light)
+            if directions.ndim == 3:  # per pixel: lane p K + k is C order of (P, K)
+                lights = mi.Vector3f(*[mi.Float(np.ascontiguousarray(
+                    directions[..., c], dtype=np.float32).reshape(-1)) for c in range(3)])
+            else:
+                table = mi.Vector3f(*[mi.Float(directions[:, c].astype(np.float32))
+                                      for c in range(3)])
+                lights = dr.gather(mi.Vector3f, table, light)
             dr.eval(lanes)  # one launch for every gather
             out = self._eval(lanes, lights, p * k)
             value = np.array(out, dtype=np.float64).reshape(3, p, k).transpose(1, 2, 0)
@@ -224,8 +231,38 @@ def _split_maps(maps: Mapping, shape: tuple[int, int]
     return normals, albedo, values, settings
 
 
+def near_field(directions: np.ndarray, light_distance: float | np.ndarray,
+               shape: tuple[int, int], mask: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-pixel light directions and irradiance factors of lights at ``light_distance``.
+
+    Args:
+        directions: (K, 3) unit vectors from the image's centre towards the lights.
+        light_distance: r in image widths (a number or (K,)); ``inf``: distant lights.
+        shape: (H, W) pixels of the image (pixel coordinates and the least valid distance,
+            :func:`mitsuba_powder.rti.lights.check_distance`).
+        mask: bool (H, W): only these pixels (in C order); default all.
+
+    Returns:
+        None for distant lights (the (K, 3) directions hold at every pixel), else float32
+        (P, K, 3) directions and float64 (P, K) irradiance factors ``s`` (1 at the
+        image's centre).
+    """
+    check_distance(light_distance, shape, "light_distance")
+    rig = LightRig(directions, light_distance)
+    if rig.is_distant:
+        return None
+    xy = pixel_coordinates(shape)
+    xy = xy.reshape(-1, 2) if mask is None else xy[mask]
+    dirs, s = light_field(rig, xy)
+    # float32 directions: the plugin evaluates in float32, and they take 12 bytes a lane
+    return (np.ascontiguousarray(dirs.transpose(1, 0, 2), dtype=np.float32),
+            np.ascontiguousarray(s.T))
+
+
 def render_capture(maps: Mapping, directions: np.ndarray, gains: np.ndarray | None = None,
-                   variant: str = VARIANT, max_lanes: int = MAX_LANES) -> np.ndarray:
+                   variant: str = VARIANT, max_lanes: int = MAX_LANES,
+                   light_distance: float | np.ndarray = math.inf) -> np.ndarray:
     """Render an RTI capture of a powder surface from per-pixel maps (the forward model).
 
     Args:
@@ -241,10 +278,15 @@ def render_capture(maps: Mapping, directions: np.ndarray, gains: np.ndarray | No
         gains: (K,) irradiance of each light, W/m^2 on a plane perpendicular to it (default 1).
         variant: an RGB variant.
         max_lanes: pixels x lights per plugin evaluation at most (memory bound).
+        light_distance: the lights' distance from the image's centre in image widths (a
+            number or (K,)), beyond the image's half-diagonal; ``inf`` (default): distant
+            lights. A finite distance gives each pixel x its own direction ``d_k(x)`` and
+            irradiance ``E_k s_k(x)`` (:mod:`mitsuba_powder.rti.lights`).
 
     Returns:
         float32 (K, H, W, 3) radiance ``E_k f(l_k, v) max(n . l_k, 0)``, W/(m^2 sr) (the
-        module docstring gives the exact definition).
+        module docstring gives the exact definition; ``E_k s_k(x)`` and ``d_k(x)`` for lights
+        at a finite distance).
     """
     d = check_directions(directions)
     if "normal" not in maps:
@@ -253,6 +295,7 @@ def render_capture(maps: Mapping, directions: np.ndarray, gains: np.ndarray | No
     normals, albedo, values, settings = _split_maps(maps, shape)
     g = check_gains(gains, len(d))
     max_lanes = check_count("max_lanes", max_lanes, 1)
+    field_ = near_field(d, light_distance, shape)
     ev = PixelEvaluator(list(values), settings, variant)
     slopes = slopes_of_normals(normals).reshape(-1, 2)
     alb = albedo.reshape(-1, 3)
@@ -260,6 +303,11 @@ def render_capture(maps: Mapping, directions: np.ndarray, gains: np.ndarray | No
     out = np.empty((len(d),) + shape + (3,), dtype=np.float32)
     view = out.reshape(len(d), -1, 3)
     for s in pixel_chunks(len(slopes), len(d), max_lanes):
-        value, _ = ev(slopes[s], alb[s], {k: v[s] for k, v in flat.items()}, d)
-        view[:, s] = (value * g[None, :, None]).transpose(1, 0, 2)
+        part = {k: v[s] for k, v in flat.items()}
+        if field_ is None:
+            value, _ = ev(slopes[s], alb[s], part, d)
+            view[:, s] = (value * g[None, :, None]).transpose(1, 0, 2)
+        else:
+            value, _ = ev(slopes[s], alb[s], part, field_[0][s])
+            view[:, s] = (value * (g[None, :] * field_[1][s])[:, :, None]).transpose(1, 0, 2)
     return out

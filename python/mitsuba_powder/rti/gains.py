@@ -53,7 +53,8 @@ import numpy as np
 
 from .lights import unit_directions
 
-__all__ = ["MAX_DEGREE", "GainModel", "fit_gain_model", "gain_basis"]
+__all__ = ["GAIN_MODEL_MODES", "MAX_DEGREE", "GainModel", "GainOptions", "fit_gain_model",
+           "gain_basis"]
 
 #: Highest polynomial degree in l_z (a dome has a handful of rings)
 MAX_DEGREE = 6
@@ -294,3 +295,84 @@ def fit_gain_model(directions: np.ndarray, gains: np.ndarray, weights: np.ndarra
     else:
         delta = np.where(used, w * r / np.where(used, w + lam, 1.0), 0.0)
     return GainModel(c, int(degree), int(azimuth_order), lz_range, lam, d, delta)
+
+
+#: How the per-pixel fit uses the gain model: ``free`` (every fitted light keeps its own gain;
+#: the model gives the gain of a light not fitted) or ``smooth`` (the gains are the model's,
+#: with residuals regularised by the spread)
+GAIN_MODEL_MODES = ("free", "smooth")
+
+
+@dataclass(frozen=True)
+class GainOptions:
+    """How :func:`mitsuba_powder.rti.fit_maps` models its per-light gains.
+
+    Attributes:
+        mode: ``free`` or ``smooth`` (:data:`GAIN_MODEL_MODES`).
+        degree: polynomial degree in ``l_z`` (lowered to what the lights' elevations
+            determine).
+        azimuth_order: 0-2 (module docstring).
+        spread: ``smooth`` only: the relative spread ``tau`` of the lights' gains about the
+            trend (e.g. 0.02 = 2 %), > 0; None: the gains are the trend exactly.
+    """
+
+    mode: str = "free"
+    degree: int = 2
+    azimuth_order: int = 0
+    spread: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.mode not in GAIN_MODEL_MODES:
+            raise ValueError(f"gain_model = {self.mode!r} is not valid; choose one of "
+                             f"{GAIN_MODEL_MODES}")
+        _order("gain_degree", self.degree, MAX_DEGREE)
+        _order("gain_azimuth_order", self.azimuth_order, MAX_AZIMUTH_ORDER)
+        if self.spread is not None:
+            tau = float(self.spread)
+            if not (math.isfinite(tau) and tau > 0):
+                raise ValueError(f"gain_spread = {self.spread!r} is out of range; valid range "
+                                 "is (0, inf) (a relative spread, e.g. 0.02), or None")
+            if self.mode != "smooth":
+                raise ValueError(f"gain_spread = {self.spread!r} needs gain_model = 'smooth' "
+                                 f"(it is {self.mode!r})")
+
+    def strength(self, raw_weights: np.ndarray | None) -> float:
+        """The ridge strength of :func:`fit_gain_model` for the gains' raw weights (the
+        Gauss-Newton information of ``ln g_k``): 0 (``free``), inf (``smooth`` without a
+        spread) or ``1 / (tau^2 mean(w))``."""
+        if self.mode == "free":
+            return 0.0
+        if self.spread is None or raw_weights is None:
+            return math.inf
+        return 1.0 / (float(self.spread) ** 2 * max(float(np.mean(raw_weights)), 1e-300))
+
+    def fit(self, directions: np.ndarray, gains: np.ndarray,
+            information: np.ndarray | None = None) -> GainModel:
+        """The gain model of fitted ``gains``, weighted by ``g_k^2 information_k`` (the
+        information of ``ln g_k``; all 1 when None), at the highest degree up to
+        :attr:`degree` that the lights determine."""
+        w = None if information is None else np.maximum(gains**2 * information, 0.0)
+        if w is not None and not np.any(w > 0):
+            w = None
+        strength = self.strength(w)
+        for degree in range(self.degree, -1, -1):
+            for order in range(self.azimuth_order, -1, -1):
+                try:
+                    return fit_gain_model(directions, gains, w, degree, order, strength)
+                except ValueError:
+                    if degree == 0 and order == 0:
+                        raise
+        raise AssertionError("unreachable")
+
+    def smooth(self, directions: np.ndarray, gains: np.ndarray, information: np.ndarray,
+               scale: float) -> np.ndarray:
+        """``smooth`` mode: the gains replaced by the model's (trend and regularised
+        residuals), their mean restored to ``scale``."""
+        model = self.fit(directions, gains, information)
+        new = model.gains()
+        return new * (scale / float(np.mean(new)))
+
+    def settings(self) -> dict:
+        """JSON-ready options (for ``fit.json``)."""
+        return {"mode": self.mode, "degree": self.degree,
+                "azimuth_order": self.azimuth_order, "spread": self.spread}

@@ -18,7 +18,12 @@ A maps folder holds:
   and lit by a directional emitter of irradiance ``$irradiance`` from ``($lx, $ly, $lz)``
   (towards the light, image frame). It renders with ``mitsuba scene.xml -D lx=... -D ly=...
   -D lz=...`` and with ``mitsuba-powder render``; with the ``direct`` integrator a pixel is the
-  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti.relight` predicts.
+  model's ``E f (n . l)``, as :func:`mitsuba_powder.rti.relight` predicts. A fit with lights
+  at a finite distance r (image widths) lights the scene instead by a ``point`` emitter at
+  ``($px, $py, $pz)`` of intensity ``$intensity``: light k of gain ``E_k`` is at ``p = r l_k
+  (2 W / H)`` (an image width is ``2 W / H`` scene units) with ``intensity = E_k (r 2 W /
+  H)^2``, so that ``I / D^2 = E_k`` at the image's centre
+  (:func:`mitsuba_powder.rti.lights.point_lights`).
 
 Maps are written with row 0 at the top of the image (as the capture); the scene's bitmaps map
 them onto the rectangle with ``to_uv`` flipping v (Mitsuba's rectangle has v up, its bitmaps
@@ -35,7 +40,9 @@ import numpy as np
 
 from ..outputs import guarding_inputs, note_input, note_inputs, output_path
 from ..variants import use_variant
-from .capture import Capture, read_lp, write_images
+from .capture import Capture, write_images
+from .gains import GainModel
+from .lights import read_lp_rig
 from .properties import GRAIN_MAPS, MAP_GRAIN_SETTINGS
 from .result import MapsResult
 
@@ -55,10 +62,7 @@ _SCENE = """<!--
 -->
 <scene version="3.0.0">
     <default name="spp" value="4"/>
-    <default name="lx" value="0"/>
-    <default name="ly" value="0"/>
-    <default name="lz" value="1"/>
-    <default name="irradiance" value="1"/>
+{defaults}
 
     <integrator type="direct">
         <integer name="emitter_samples" value="1"/>
@@ -82,13 +86,7 @@ _SCENE = """<!--
         </film>
     </sensor>
 
-    <emitter type="directional">
-        <!-- emits along its local +z: from (lx, ly, lz) towards the origin -->
-        <transform name="to_world">
-            <lookat origin="$lx, $ly, $lz" target="0, 0, 0" up="0, 1, 0"/>
-        </transform>
-        <rgb name="irradiance" value="$irradiance"/>
-    </emitter>
+{emitter}
 
     <shape type="rectangle">
         <transform name="to_world">
@@ -104,6 +102,30 @@ _SCENE = """<!--
     </shape>
 </scene>
 """
+
+
+_DISTANT = ("""    <emitter type="directional">
+        <!-- emits along its local +z: from (lx, ly, lz) towards the origin -->
+        <transform name="to_world">
+            <lookat origin="$lx, $ly, $lz" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <rgb name="irradiance" value="$irradiance"/>
+    </emitter>""", """    <default name="lx" value="0"/>
+    <default name="ly" value="0"/>
+    <default name="lz" value="1"/>
+    <default name="irradiance" value="1"/>""")
+
+#: The point light of a near-field fit (module docstring); fields: the zenith light's
+#: position height ``pz`` and ``intensity``, the distance ``r`` and the scene width ``sw``
+_NEAR = ("""    <!-- lights at r = {r!r} image widths: light k of unit direction l and gain E is at
+         p = {r!r} x {sw!r} x l (scene units) with intensity = E ({r!r} x {sw!r})^2 -->
+    <emitter type="point">
+        <point name="position" x="$px" y="$py" z="$pz"/>
+        <rgb name="intensity" value="$intensity"/>
+    </emitter>""", """    <default name="px" value="0"/>
+    <default name="py" value="0"/>
+    <default name="pz" value="{pz!r}"/>
+    <default name="intensity" value="{intensity!r}"/>""")
 
 
 def _write_exr(path: Path, data: np.ndarray) -> None:
@@ -176,13 +198,21 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
         settings = {k: v for k, v in settings.items() if k not in MAP_GRAIN_SETTINGS}
     maps = "".join(_indented(_bitmap_xml(name, f"{name}.exr")) for name in sorted(result.maps))
     albedo = "" if grain_maps else _indented(_bitmap_xml("albedo", "albedo.exr"))
+    r = float(np.median(result.light_distance))
+    if math.isinf(r):
+        emitter, defaults = _DISTANT
+    else:
+        sw = 2.0 * w / h
+        emitter = _NEAR[0].format(r=r, sw=sw)
+        defaults = _NEAR[1].format(pz=r * sw, intensity=(r * sw) ** 2)
     return _SCENE.format(w=w, h=h, aspect=w / h, normalmap=_bitmap_xml("normalmap",
                                                                         NORMAL_TANGENT),
-                         albedo=albedo, maps=maps, props=_property_xml(settings))
+                         albedo=albedo, maps=maps, props=_property_xml(settings),
+                         emitter=emitter, defaults=defaults)
 
 
 def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None = None,
-               light_names: list[str] | None = None) -> Path:
+               light_names: list[str] | None = None, pixel_size: float | None = None) -> Path:
     """Write a fit to ``out_dir`` (module docstring); returns the path of ``fit.json``.
 
     Args:
@@ -191,6 +221,8 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
         capture: the fitted capture (its encoding, bit depth and file format are recorded, so
             that :func:`relight_files` writes matching images).
         light_names: the capture's image names, in the order of ``result.gains``.
+        pixel_size: the size of a pixel in the unit of the ``.lp`` light positions (recorded
+            so that :func:`relight_files` can read a positions ``.lp``).
     """
     out = Path(out_dir)
     maps = result.as_maps()
@@ -232,10 +264,34 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
         "used_observations": float(result.used[:, result.mask].mean())
         if result.mask.any() else 0.0,
         "fit": result.fit_settings,
+        "light_rig": {
+            "model": "distant" if np.all(np.isinf(result.light_distance)) else "near",
+            "distance": _distance_json(result.light_distance),
+            "distance_source": result.fit_settings.get("light_distance_source", "distant"),
+            "pixel_size": pixel_size,
+            "units": "distance in image widths from the image's centre (null: distant); "
+                     "pixel_size in the .lp positions' unit per pixel"},
+        "gain_model": None if result.gain_model is None else result.gain_model.to_dict(),
     }
     path = target["fit.json"]
     path.write_text(json.dumps(info, indent=1, default=_json_default))
     return path
+
+
+def _distance_json(r: float | np.ndarray) -> float | list | None:
+    """A light distance for JSON: a number, a list (one per light) or None (inf)."""
+    if np.ndim(r) == 0:
+        return None if math.isinf(float(r)) else float(r)
+    return [None if math.isinf(v) else float(v) for v in np.asarray(r, dtype=np.float64)]
+
+
+def _distance_of(value) -> float | np.ndarray:
+    """The inverse of :func:`_distance_json`."""
+    if value is None:
+        return math.inf
+    if isinstance(value, list):
+        return np.array([math.inf if v is None else float(v) for v in value])
+    return float(value)
 
 
 def _json_default(value):
@@ -275,12 +331,16 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
         mask=mask,
         variant=info.get("variant", "llvm_ad_rgb"),
         fit_settings=info.get("fit", {}),
+        light_distance=_distance_of((info.get("light_rig") or {}).get("distance")),
+        gain_model=(GainModel.from_dict(info["gain_model"]) if info.get("gain_model")
+                    else None),
     )
     return result, info
 
 
-def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Path
-                  ) -> list[Path]:
+def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Path,
+                  pixel_size: float | None = None,
+                  light_distance: float | None = None) -> list[Path]:
     """One predicted image per line of ``lights_lp``, with the fitted capture's encoding and
     bit depth (PNG 8 bit sRGB when the capture is not recorded), written under ``out_dir`` only.
 
@@ -289,15 +349,29 @@ def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Pa
     written names goes beside them. Nothing is written over the maps, the ``.lp`` file or the
     photographs it names (:func:`mitsuba_powder.rti.write_images`).
 
+    The ``.lp`` vectors are directions (at the fit's light distance unless ``light_distance``
+    is given, image widths), or, when a pixel size is known (``pixel_size``, default the fit's),
+    directions if all are unit and light positions (each its own distance) if none is; the
+    gains are the fit's gain model's.
+
     Returns:
         The paths written.
     """
     with guarding_inputs(lights_lp):
         result, info = read_maps(maps_dir)
-        names, directions = read_lp(lights_lp)
-        images = result.predict(directions)
+        size = pixel_size if pixel_size is not None else (
+            (info.get("light_rig") or {}).get("pixel_size"))
+        width = result.mask.shape[1]
+        fit_r = result.light_distance if np.ndim(result.light_distance) == 0 else math.inf
+        r = fit_r if light_distance is None else light_distance
+        # without the positions' unit the vectors are directions (normalised), as always
+        names, rig, kind = read_lp_rig(lights_lp, "auto" if size is not None else "directions",
+                                       None if size is None else size * width)
+        if kind == "directions":
+            rig = rig.with_distance(r)
+        images = result.predict(rig.directions, light_distance=rig.distance)
         cap = info.get("capture") or {"encoding": "srgb", "bit_depth": 8, "file_format": "png"}
-        like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=directions,
+        like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=rig.directions,
                        names=list(names), encoding=cap["encoding"],
                        file_format=cap["file_format"], bit_depth=int(cap["bit_depth"]))
         return write_images(like, images, lights_lp, out_dir)

@@ -20,19 +20,22 @@ class PixelProblem:
 
     The last column of ``y`` is the pixel's index into this problem's data (held by the
     optimiser), so that the rows the optimiser passes (active pixels, padded) find their
-    observations.
+    observations, and, for lights at a finite distance, their per-pixel light directions
+    ``directions`` (P, K, 3) and irradiance factors ``irradiance`` (P, K) (the model of pixel
+    p under light k is then ``g_k s_pk f(d_pk) (n . d_pk)``).
     """
 
     def __init__(self, ev: PixelEvaluator, observed: np.ndarray, weights: np.ndarray,
                  directions: np.ndarray, gains: np.ndarray, layout: list[tuple[str, ParamSpec]],
                  fixed: Mapping[str, np.ndarray], fixed_albedo: np.ndarray | None = None,
-                 grain: GrainAlbedo | None = None):
+                 grain: GrainAlbedo | None = None, irradiance: np.ndarray | None = None):
         self.ev = ev
         self.grain = grain                  # the albedo from a free grain size
         self.fixed_albedo = fixed_albedo    # (P, 3) when the albedo is not free
         self.observed = observed            # (P, K, 3) float64
         self.sqrt_w = np.sqrt(weights)      # (P, K)
-        self.directions = directions
+        self.directions = directions        # (K, 3), or (P, K, 3) per pixel
+        self.irradiance = irradiance        # None (distant lights) or (P, K)
         self.gains = gains
         self.layout = layout                # variable name and spec, in column order
         self.fixed = fixed                  # non-free varying property -> (P,)
@@ -65,14 +68,24 @@ class PixelProblem:
             albedo = np.stack(alb_cols, axis=1) if alb_cols else self.fixed_albedo[idx]
         return idx, slopes, albedo, values, dxdy
 
+    def lights(self, idx: np.ndarray) -> np.ndarray:
+        """The light directions of the rows ``idx``: (K, 3) or (B, K, 3)."""
+        return self.directions if self.directions.ndim == 2 else self.directions[idx]
+
+    def light_gains(self, idx: np.ndarray) -> np.ndarray:
+        """(1, K, 1) or (B, K, 1): the gains times the rows' irradiance factors."""
+        if self.irradiance is None:
+            return self.gains[None, :, None]
+        return (self.gains[None, :] * self.irradiance[idx])[:, :, None]
+
     def _residual(self, idx: np.ndarray, value: np.ndarray) -> np.ndarray:
-        model = value * self.gains[None, :, None]
+        model = value * self.light_gains(idx)
         r = (model - self.observed[idx]) * self.sqrt_w[idx][:, :, None]
         return r.reshape(len(idx), -1)
 
     def residuals(self, y: np.ndarray) -> np.ndarray:
         idx, slopes, albedo, values, _ = self.unpack(y)
-        value, _ = self.ev(slopes, albedo, values, self.directions)
+        value, _ = self.ev(slopes, albedo, values, self.lights(idx))
         self.evaluations += 1
         return self._residual(idx, value)
 
@@ -83,10 +96,10 @@ class PixelProblem:
             names.append("albedo")
         names += [n for n, _ in self.layout[2:]
                   if not n.startswith("albedo") and n not in GRAIN_MAPS]
-        value, grads = self.ev(slopes, albedo, values, self.directions, names)
+        value, grads = self.ev(slopes, albedo, values, self.lights(idx), names)
         self.evaluations += 1 + len(names)
-        b, k = len(idx), len(self.directions)
-        scale = (self.gains[None, :, None] * self.sqrt_w[idx][:, :, None])
+        b, k = len(idx), len(self.gains)
+        scale = (self.light_gains(idx) * self.sqrt_w[idx][:, :, None])
         jac = np.zeros((b, k, 3, len(self.layout) + 1))
         for j, (name, _) in enumerate(self.layout):
             if name.startswith("albedo"):

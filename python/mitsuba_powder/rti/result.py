@@ -3,11 +3,13 @@ relit under new lights (:func:`relight`)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .forward import MAX_LANES, VARIANT, render_capture
+from .gains import GainModel
 from .properties import GRAIN_MAPS
 
 __all__ = ["MapsResult", "relight"]
@@ -31,6 +33,10 @@ class MapsResult:
         mask: bool (H, W) fitted pixels.
         variant: the Mitsuba variant.
         fit_settings: the fit's options and diagnostics (iterations, seconds, ...).
+        light_distance: the lights' distance from the image's centre in image widths (a
+            number or (K,), given or fitted; ``inf``: distant lights): relit images use it.
+        gain_model: the gains as a smooth function of the light direction (with the fitted
+            lights' residuals): the gain of a light when none is given; None: 1.
     """
 
     normals: np.ndarray
@@ -44,6 +50,8 @@ class MapsResult:
     mask: np.ndarray
     variant: str = VARIANT
     fit_settings: dict = field(default_factory=dict)
+    light_distance: float | np.ndarray = math.inf
+    gain_model: GainModel | None = None
 
     @property
     def n_parameters(self) -> int:
@@ -64,25 +72,43 @@ class MapsResult:
         out.update(self.settings)
         return out
 
-    def predict(self, directions: np.ndarray, gains: np.ndarray | None = None) -> np.ndarray:
+    def predict(self, directions: np.ndarray, gains: np.ndarray | None = None,
+                light_distance: float | np.ndarray | None = None) -> np.ndarray:
         """Relit images float32 (K', H, W, 3) under ``directions`` (K', 3); see :func:`relight`.
         """
-        return relight(self, directions, gains)
+        return relight(self, directions, gains, light_distance=light_distance)
+
+    def light_gains(self, directions: np.ndarray) -> np.ndarray:
+        """(K',) gains of lights at ``directions``: the gain model's (a fitted light's own
+        gain, the smooth trend for another), or 1 without a gain model."""
+        if self.gain_model is None:
+            return np.ones(len(directions))
+        return self.gain_model.evaluate(directions)
 
 
 def relight(result: MapsResult, directions: np.ndarray, gains: np.ndarray | None = None,
-            max_lanes: int = MAX_LANES) -> np.ndarray:
+            max_lanes: int = MAX_LANES, light_distance: float | np.ndarray | None = None
+            ) -> np.ndarray:
     """The fitted surface under new lights: :func:`mitsuba_powder.rti.render_capture` with the
     fitted maps.
 
     Args:
         result: a :func:`mitsuba_powder.rti.fit_maps` result.
         directions: (K', 3) vectors towards the lights.
-        gains: (K',) light irradiances (default 1: the fit's mean gain).
+        gains: (K',) light irradiances; default: :meth:`MapsResult.light_gains` (the fit's
+            gain model at these directions, 1 without one).
+        light_distance: the new lights' distance in image widths (a number or (K',));
+            default: the fit's when it is one number (``inf`` for per-light distances).
 
     Returns:
         float32 (K', H, W, 3) radiance (the capture's linear units); 0 outside the mask.
     """
-    out = render_capture(result.as_maps(), directions, gains, result.variant, max_lanes)
+    if light_distance is None:
+        light_distance = (result.light_distance if np.ndim(result.light_distance) == 0
+                          else math.inf)
+    if gains is None:
+        gains = result.light_gains(directions)
+    out = render_capture(result.as_maps(), directions, gains, result.variant, max_lanes,
+                         light_distance)
     out[:, ~result.mask] = 0.0
     return out

@@ -24,8 +24,8 @@ START_EXTINCTIONS = (0.2, 0.5, 1.0, 2.0, 5.0)
 
 
 def lambertian_start(images: np.ndarray, directions: np.ndarray,
-                     weights: np.ndarray | None = None, gains: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     weights: np.ndarray | None = None, gains: np.ndarray | None = None,
+                     irradiance: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lambertian photometric stereo (Woodham 1980), vectorised over pixels.
 
     Solves ``I_k / E_k = b . l_k`` per pixel by weighted least squares on the channel mean,
@@ -34,9 +34,12 @@ def lambertian_start(images: np.ndarray, directions: np.ndarray,
 
     Args:
         images: (K, H, W, 3) linear values.
-        directions: (K, 3) unit light directions.
+        directions: (K, 3) unit light directions, or (K, H, W, 3) per pixel (lights at a
+            finite distance).
         weights: (K, H, W) in {0, 1} (observations used), default all.
         gains: (K,) light irradiances, default 1.
+        irradiance: (K, H, W) per-pixel irradiance factors multiplying the gains (lights at a
+            finite distance), default 1.
 
     Returns:
         normals (H, W, 3) (n_z >= 0.05 enforced by tilting towards z) and the Lambertian
@@ -45,6 +48,8 @@ def lambertian_start(images: np.ndarray, directions: np.ndarray,
     k, h, w, _ = images.shape
     g = np.ones(k) if gains is None else gains
     wt = np.ones((k, h * w)) if weights is None else weights.reshape(k, h * w).astype(float)
+    if np.ndim(directions) == 4 or irradiance is not None:
+        return _near_lambertian(images, directions, wt, g, irradiance)
     lum = images.reshape(k, h * w, 3).mean(axis=2) / g[:, None]
     a = np.einsum("kp,ki,kj->pij", wt, directions, directions)
     a += 1e-9 * np.eye(3)[None]
@@ -61,6 +66,39 @@ def lambertian_start(images: np.ndarray, directions: np.ndarray,
     cos = np.maximum(directions @ n.T, 0.0)  # (K, P)
     num = np.einsum("kp,kp,kpc->pc", wt, cos, images.reshape(k, h * w, 3))
     den = np.einsum("kp,k,kp->p", wt, g, cos**2)[:, None]
+    refl = np.pi * num / np.maximum(den, 1e-30)
+    return n.reshape(h, w, 3), refl.reshape(h, w, 3)
+
+
+def _normals_of_b(b: np.ndarray) -> np.ndarray:
+    """Photometric-stereo vectors b (P, 3) -> unit normals with n_z >= 0.05."""
+    b[:, 2] = np.maximum(b[:, 2], 1e-12)
+    n = b / np.linalg.norm(b, axis=1, keepdims=True)
+    n[:, 2] = np.maximum(n[:, 2], 0.05)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _near_lambertian(images: np.ndarray, directions: np.ndarray, wt: np.ndarray,
+                     g: np.ndarray, irradiance: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lambertian_start` with per-pixel light directions (K, H, W, 3) (or (K, 3)) and
+    irradiance factors (K, H, W) (or None): ``I_kp / (E_k s_kp) = b_p . d_kp``."""
+    k, h, w, _ = images.shape
+    dirs = np.broadcast_to(np.asarray(directions, dtype=np.float64).reshape(k, -1, 3),
+                           (k, h * w, 3))
+    gs = g[:, None] * (np.ones((k, h * w)) if irradiance is None
+                       else np.asarray(irradiance, dtype=np.float64).reshape(k, h * w))
+    lum = images.reshape(k, h * w, 3).mean(axis=2) / gs
+    a = np.einsum("kp,kpi,kpj->pij", wt, dirs, dirs) + 1e-9 * np.eye(3)[None]
+    rhs = np.einsum("kp,kp,kpi->pi", wt, lum, dirs)
+    try:
+        b = np.linalg.solve(a, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        b = np.einsum("pij,pj->pi", np.linalg.pinv(a), rhs)
+    n = _normals_of_b(b)
+    cos = np.maximum(np.einsum("kpi,pi->kp", dirs, n), 0.0)
+    num = np.einsum("kp,kp,kpc->pc", wt, cos, images.reshape(k, h * w, 3))
+    den = np.einsum("kp,kp,kp->p", wt, gs, cos**2)[:, None]
     refl = np.pi * num / np.maximum(den, 1e-30)
     return n.reshape(h, w, 3), refl.reshape(h, w, 3)
 
@@ -98,14 +136,16 @@ class PixelStarts:
             grain size; grain_name: the per-pixel grain size of the settings.
         fixed_maps: held per-pixel property -> (P,); grain: the albedo of the grain size (or
             None); max_lanes: pixels x lights per evaluation at most.
+        field: lights at a finite distance: per-pixel directions (P, K, 3) and irradiance
+            factors (P, K) (:func:`mitsuba_powder.rti.forward.near_field`); None: distant.
     """
 
     def __init__(self, ev: PixelEvaluator, obs: np.ndarray, directions: np.ndarray,
                  layout: Sequence[tuple[str, ParamSpec]], specs: Mapping[str, ParamSpec],
                  free: Sequence[str], others: Sequence[str], grain_name: str,
                  fixed_maps: Mapping[str, np.ndarray], grain: GrainAlbedo | None,
-                 max_lanes: int):
-        self.ev, self.obs, self.d = ev, obs, directions
+                 max_lanes: int, field: tuple[np.ndarray, np.ndarray] | None = None):
+        self.ev, self.obs, self.d, self.field = ev, obs, directions, field
         self.layout, self.specs, self.others = layout, specs, list(others)
         self.grain_name, self.fixed_maps, self.max_lanes = grain_name, fixed_maps, max_lanes
         table_values = {**{n: SPECS[n].start for n in others},
@@ -124,8 +164,13 @@ class PixelStarts:
         reflectances (P, 3). ``search``: also the grain-size search (else the default size).
         """
         npix = len(self.obs)
-        n0, refl = lambertian_start(self.obs.transpose(1, 0, 2)[:, :, None, :], self.d,
-                                    weight.T[:, :, None], gain)
+        if self.field is None:
+            n0, refl = lambertian_start(self.obs.transpose(1, 0, 2)[:, :, None, :], self.d,
+                                        weight.T[:, :, None], gain)
+        else:
+            n0, refl = lambertian_start(self.obs.transpose(1, 0, 2)[:, :, None, :],
+                                        self.field[0].transpose(1, 0, 2)[:, :, None, :],
+                                        weight.T[:, :, None], gain, self.field[1].T[:, :, None])
         n0, refl = n0[:, 0], refl[:, 0]
         y = np.zeros((npix, len(self.layout) + 1))
         slopes0 = np.clip(slopes_of_normals(n0), -SLOPE_LIMIT, SLOPE_LIMIT)
@@ -149,6 +194,16 @@ class PixelStarts:
             col += 1
         y[:, -1] = np.arange(npix)
         return y, n0, refl
+
+    def lights(self, sl: slice) -> np.ndarray:
+        """The light directions of the pixels ``sl``: (K, 3) or (P_sl, K, 3)."""
+        return self.d if self.field is None else self.field[0][sl]
+
+    def light_gains(self, gain: np.ndarray, sl: slice) -> np.ndarray:
+        """(1, K, 1) or (P_sl, K, 1): the gains times the pixels' irradiance factors."""
+        if self.field is None:
+            return gain[None, :, None]
+        return (gain[None, :] * self.field[1][sl])[:, :, None]
 
     def grain_search(self, weight: np.ndarray, gain: np.ndarray, slopes: np.ndarray
                      ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -202,8 +257,9 @@ class PixelStarts:
             part = {n: x[sl] for n, x in base.items()}
             value, _ = self.ev(slopes[sl], np.broadcast_to(self.size_rho[0],
                                                            (len(slopes[sl]), 3)),
-                               {**part, "amplitude_volume": np.zeros(len(slopes[sl]))}, self.d)
-            surface.append(value * gain[None, :, None])
+                               {**part, "amplitude_volume": np.zeros(len(slopes[sl]))},
+                               self.lights(sl))
+            surface.append(value * self.light_gains(gain, sl))
         return surface
 
     def _trial_cost(self, vals: Mapping[str, np.ndarray], slopes: np.ndarray, rho: np.ndarray,
@@ -221,16 +277,17 @@ class PixelStarts:
             obs = self.obs[sl]
             if surface is not None:
                 unit = np.ones(len(slopes[sl]))
-                one, _ = self.ev(slopes[sl], rho[sl], {**part, "amplitude_volume": unit}, self.d)
+                one, _ = self.ev(slopes[sl], rho[sl], {**part, "amplitude_volume": unit},
+                                 self.lights(sl))
                 surf = surface[j]
-                vol = one * gain[None, :, None] - surf
+                vol = one * self.light_gains(gain, sl) - surf
                 wv = weight[sl, :, None] * vol
                 num = np.sum(wv * (obs - surf), axis=(1, 2))
                 den = np.maximum(np.sum(wv * vol, axis=(1, 2)), 1e-30)
                 av[sl] = np.clip(num / den, av_spec.lower, av_spec.upper)
                 model = av[sl, None, None] * vol + surf
             else:
-                v, _ = self.ev(slopes[sl], rho[sl], part, self.d)
-                model = v * gain[None, :, None]
+                v, _ = self.ev(slopes[sl], rho[sl], part, self.lights(sl))
+                model = v * self.light_gains(gain, sl)
             cost[sl] = np.sum(weight[sl, :, None] * (model - obs) ** 2, axis=(1, 2))
         return cost, av

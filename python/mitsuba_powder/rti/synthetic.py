@@ -111,7 +111,7 @@ def synthetic_capture(height: int = 64, width: int = 64, lights: int = 40,
                       noise: float = 0.01, gains: np.ndarray | None = None,
                       relief: float = 0.25, seed: int = 0, exposure: float | None = 2.0,
                       variant: str = VARIANT, regions: str = "albedo",
-                      near_camera: int = 0) -> dict:
+                      near_camera: int = 0, light_distance: float = math.inf) -> dict:
     """A SYNTHETIC RTI capture rendered by :func:`render_capture` from known maps.
 
     Four quadrants of different properties (:func:`synthetic_maps`: ``regions="albedo"``,
@@ -129,6 +129,8 @@ def synthetic_capture(height: int = 64, width: int = 64, lights: int = 40,
             from the camera (the rest on the 10-80 degree dome): they sample the coherent
             back-scattering cone, the only part of the images that depends on the
             ``extinction`` (:mod:`mitsuba_powder.rti.fit`, "What a dome of lights determines").
+        light_distance: the lights' distance from the image's centre, image widths
+            (default ``inf``: distant lights; :func:`render_capture`).
 
     Returns:
         dict: ``images`` float32 (K, H, W, 3) (noisy), ``clean`` (noise-free),
@@ -145,8 +147,9 @@ def synthetic_capture(height: int = 64, width: int = 64, lights: int = 40,
     rel = check_gains(gains, len(d))
     maps, region = synthetic_maps(height, width, relief, seed, regions)
     if exposure is None:
-        exposure = 0.9 / float(np.max(render_capture(maps, d, rel, variant)))
-    clean = render_capture(maps, d, exposure * rel, variant)
+        exposure = 0.9 / float(np.max(render_capture(maps, d, rel, variant,
+                                                     light_distance=light_distance)))
+    clean = render_capture(maps, d, exposure * rel, variant, light_distance=light_distance)
     rng = np.random.default_rng(seed + 1)
     images = (clean + rng.normal(0.0, noise, clean.shape)).astype(np.float32)
     return {"images": images, "clean": clean, "directions": d, "maps": maps,
