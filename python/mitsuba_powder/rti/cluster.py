@@ -3,8 +3,8 @@ by default, or an existing one by its scheduler's address.
 
 The local cluster is Dask's embedded one (nothing to start): one worker process per core
 (``workers``, default :func:`os.cpu_count`), one thread per worker, no dashboard. Each tile
-then runs Dr.Jit's LLVM backend on as many threads as its worker has (one by default, so
-that N workers use N cores without contending for them).
+then runs Dr.Jit's LLVM backend on as many threads as its worker has, at least two (a pool
+of one thread hangs), so that N workers use about N cores instead of N x N threads.
 
 An existing cluster (``scheduler = "tcp://HOST:PORT"``) is started on the machines with
 ``dask scheduler`` and ``dask worker tcp://HOST:PORT --nworkers N --nthreads 1``

@@ -51,6 +51,7 @@ from .capture import Capture, lp_image_paths, read_image_window, read_lp, read_m
 from .checks import check_count, check_gains
 from .cluster import open_client, worker_threads
 from .fit import GAIN_MODES, fit_maps
+from .forward import VARIANT
 from .result import MapsResult
 
 __all__ = ["GAIN_PIXELS", "TILE_SIZE_MIN", "TILES_FOLDER", "Tile", "check_gain_pixels",
@@ -198,13 +199,21 @@ def _plan(capture, encoding: str, mask, options: Mapping, gains: str, initial_ga
 #  Worker tasks
 # ---------------------------------------------------------------------------
 
-def _use_worker_threads() -> None:
-    """Run Dr.Jit on as many threads as the calling Dask worker has."""
+def _prepare_worker(variant: str) -> None:
+    """Select ``variant`` for the worker's process (a fit inside a variant already selected
+    skips the plugin's registration, about 1 s per fit), and run Dr.Jit on as many threads
+    as the calling Dask worker has, but at least two: with a pool of one thread the
+    plugin's evaluation waits on itself (Dr.Jit 1.5 hangs)."""
     import drjit as dr
+    import mitsuba as mi
 
+    from ..variants import set_variant
+
+    if mi.variant() != variant:
+        set_variant(variant)
     n = worker_threads()
-    if n and dr.thread_count() != n:
-        dr.set_thread_count(n)
+    if n and dr.thread_count() != max(n, 2):
+        dr.set_thread_count(max(n, 2))
 
 
 def _survey(path: str, encoding: str, flat: np.ndarray | None = None) -> dict:
@@ -257,7 +266,7 @@ def _window_fixed(fixed: Mapping | None, shape: tuple[int, int], tile: Tile) -> 
 def _fit_gains(surveys: list[dict], directions: np.ndarray, options: Mapping,
                initial_gains: np.ndarray | None) -> dict:
     """The gains fitted on the sampled pixels (a worker task): ``gains`` (K,), ``stages``."""
-    _use_worker_threads()
+    _prepare_worker(options.get("variant", VARIANT))
     images = np.stack([s["samples"] for s in surveys])[:, None]  # (K, 1, N, 3)
     result = fit_maps(images, directions, gains="fit", initial_gains=initial_gains, **options)
     return {"gains": result.gains, "stages": result.fit_settings.get("stages", [])}
@@ -268,7 +277,7 @@ def _fit_tile(paths: list[str], encoding: str, tile: Tile, shape: tuple[int, int
               settings_hash: str) -> dict[str, np.ndarray]:
     """Fit one tile (a worker task): its images' window read from ``paths``, the gains held;
     returns the tile file's arrays (:func:`_tile_arrays`)."""
-    _use_worker_threads()
+    _prepare_worker(options.get("variant", VARIANT))
     images = []
     for path in paths:
         values, _, _, full = read_image_window(path, encoding, tile.window)
