@@ -66,25 +66,34 @@ def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
     """fit-maps --tile-size: rti.fit_maps_tiled on a Dask cluster, then the maps written."""
     import numpy as np
 
-    from ..rti import Capture, read_lp
+    from ..outputs import note_input, note_inputs, output_path
+    from ..rti import MAP_DEFAULT_FREE, Capture, lp_image_paths, read_lp
     from ..rti.cluster import open_client
-    from ..rti.maps import write_maps
+    from ..rti.maps import maps_files, write_maps
     from ..rti.tiles import GAIN_PIXELS, fit_maps_tiled
 
+    names, directions = read_lp(args.capture)
+    note_inputs(lp_image_paths(args.capture, names))
+    if args.mask is not None:
+        note_input(args.mask)
+    free = _names(args.free) or MAP_DEFAULT_FREE
+    fixed = _fixed_properties(args.set)
+    for name in maps_files([n for n in free if n != "albedo"] + list(fixed)):
+        output_path(args.out, name, mkdir=False)  # a refused output fails before the fit
     with open_client(scheduler=args.scheduler, workers=args.workers,
                      names=("--scheduler", "--workers")) as client:
-        print(f"cluster: {client.scheduler.address}, {len(client.scheduler_info()['workers'])} "
-              "worker(s)")
+        workers = len(client.scheduler_info()["workers"])
+        print(f"cluster: {client.scheduler.address}, {workers} worker(s), dashboard "
+              f"{client.dashboard_link}")
         result = fit_maps_tiled(
             args.capture, args.out, args.tile_size, encoding=args.encoding, mask=args.mask,
             gains=args.gains, gain_pixels=args.gain_pixels or GAIN_PIXELS, client=client,
-            resume=args.resume, log=print, free=_names(args.free),
-            fixed=_fixed_properties(args.set), max_iterations=args.iterations,
+            resume=args.resume, log=print, free=free, fixed=fixed,
+            max_iterations=args.iterations,
             rounds=args.rounds)
     tiles = result.fit_settings["tiles"]
     print(f"tiles: {tiles['fitted']} fitted, {tiles['resumed']} resumed or empty, in "
           f"{result.fit_settings['seconds']:.1f} s")
-    names, directions = read_lp(args.capture)
     header = result.fit_settings["capture"]
     like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=directions,
                    names=list(names), encoding=header["encoding"],

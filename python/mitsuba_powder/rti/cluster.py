@@ -2,7 +2,8 @@
 by default, or an existing one by its scheduler's address.
 
 The local cluster is Dask's embedded one (nothing to start): one worker process per core
-(``workers``, default :func:`os.cpu_count`), one thread per worker, no dashboard. Each tile
+(``workers``, default :func:`os.cpu_count`), one thread per worker, its dashboard on a
+free port. Each tile
 then runs Dr.Jit's LLVM backend on as many threads as its worker has, at least two (a pool
 of one thread hangs), so that N workers use about N cores instead of N x N threads.
 
@@ -92,8 +93,9 @@ def open_client(client=None, scheduler: str | None = None, workers: int | None =
             yield remote
         return
     n = check_workers((os.cpu_count() or 1) if workers is None else workers, names[1])
+    # the dashboard on a free port: a second cluster on this machine must not fail or warn
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      dashboard_address=None, silence_logs=logging.ERROR) as cluster, \
+                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster, \
             Client(cluster) as local:
         yield local
 

@@ -589,7 +589,8 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
     extra = {"seconds": time.perf_counter() - t0, "gains": plan.gain_mode,
              "tiles": {"tile_size": size, "count": len(tiles), "fitted": fitted,
                        "resumed": len(tiles) - len(todo), "gain_pixels": plan.gain_pixels,
-                       "gains": plan.gain_mode, "settings_hash": settings_hash},
+                       "gains": plan.gain_mode, "settings_hash": settings_hash,
+                       "out": str(out)},
              "capture": {"encoding": plan.encoding, "file_format": first["format"],
                          "bit_depth": first["depth"], "lp": str(plan.lp)}}
     return _assemble(out, tiles, shape, held, extra)
