@@ -52,6 +52,7 @@ from .checks import check_count, check_gains
 from .cluster import open_client, worker_threads
 from .fit import GAIN_MODES, fit_maps
 from .forward import VARIANT
+from .maps import _json_default
 from .result import MapsResult
 
 __all__ = ["GAIN_PIXELS", "TILE_SIZE_MIN", "TILES_FOLDER", "Tile", "check_gain_pixels",
@@ -295,16 +296,8 @@ def _fit_tile(paths: list[str], encoding: str, tile: Tile, shape: tuple[int, int
 #  Tile files
 # ---------------------------------------------------------------------------
 
-def _json_value(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
 def _meta_array(meta: dict) -> np.ndarray:
-    return np.array(json.dumps(meta, default=_json_value))
+    return np.array(json.dumps(meta, default=_json_default))
 
 
 def _tile_arrays(result: MapsResult | None, tile: Tile, settings_hash: str,
