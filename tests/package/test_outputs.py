@@ -220,6 +220,30 @@ def test_fit_maps_refuses_to_write_over_its_mask(tmp_path, capture, capsys):
     assert snapshot(work) == before
 
 
+def test_tiled_fit_maps_with_out_equal_to_the_capture(tmp_path, capture):
+    work = _copy(capture, tmp_path / "cap")
+    before = snapshot(work)
+    args = ["--rounds", "1", "--iterations", "4", "--tile-size", "8", "--workers", "1"]
+    assert main(["fit-maps", str(work / "dirs.lp"), "--out", str(work), *args]) == 0
+    after = snapshot(work)
+    assert all(after[k] == v for k, v in before.items()), "the capture was changed"
+    assert "fit.json" in after and "tiles/tile_r0000_c0000.npz" in after
+    assert not any(n.endswith(".part") for n in after)  # tiles renamed into place
+
+
+def test_tiled_fit_maps_refuses_its_mask_before_fitting(tmp_path, capture, capsys):
+    work = _copy(capture, tmp_path / "cap")
+    with use_variant("scalar_rgb"):
+        mi.Bitmap(np.ones((8, 8, 1), np.float32), mi.Bitmap.PixelFormat.Y).write(
+            str(work / "mask.exr"))
+    before = snapshot(work)
+    assert main(["fit-maps", str(work / "dirs.lp"), "--out", str(work), "--mask",
+                 str(work / "mask.exr"), "--tile-size", "8", "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "mask.exr" in err and "is an input file" in err
+    assert snapshot(work) == before  # refused before a cluster or a tile
+
+
 def test_compare_maps_refuses_an_input_named_as_its_output(tmp_path, capture, capsys):
     work = _copy(capture, tmp_path / "cap")
     # an .lp file named like the comparison's JSON, in the output folder

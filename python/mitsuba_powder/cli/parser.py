@@ -303,7 +303,43 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gain-spread", type=float, default=None, metavar="TAU",
                    help="smooth gains: relative spread of the lights about the trend (e.g. "
                         "0.02); default none (the gains are the trend)")
+    _add_tile_options(p)
     p.set_defaults(func=_cmd_fit_maps)
+
+
+def _checked(check: str, option: str):
+    """An argparse type of the value check ``check`` (``module.function`` under
+    ``mitsuba_powder.rti``, imported when an option is given; its message names ``option``)."""
+    def convert(text: str):
+        from importlib import import_module
+
+        module, function = check.rsplit(".", 1)
+        func = getattr(import_module(f"mitsuba_powder.rti.{module}"), function)
+        value = int(text) if text.strip().lstrip("+-").isdigit() else text
+        try:
+            return func(value, option)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return convert
+
+
+def _add_tile_options(p: argparse.ArgumentParser) -> None:
+    """fit-maps' tiled fit on a Dask cluster (docs/rti.md, "Tiles and clusters")."""
+    p.add_argument("--tile-size", type=_checked("tiles.check_tile_size", "--tile-size"),
+                   default=None, metavar="PX", help="fit in square tiles of PX pixels (>= 8) "
+                   "on a Dask cluster, the gains fitted first on --gain-pixels pixels and "
+                   "held; default: one fit of the whole capture in this process")
+    p.add_argument("--workers", type=_checked("cluster.check_workers", "--workers"),
+                   default=None, metavar="N", help="tiled: worker processes of the local "
+                   "cluster (>= 1; default one per core)")
+    p.add_argument("--scheduler", type=_checked("cluster.check_scheduler", "--scheduler"),
+                   default=None, metavar="tcp://HOST:PORT", help="tiled: an existing Dask "
+                   "cluster's scheduler (its workers read the images from the same path)")
+    p.add_argument("--resume", action="store_true",
+                   help="tiled: keep the tiles already in OUT/tiles (of the same settings)")
+    p.add_argument("--gain-pixels", type=_checked("tiles.check_gain_pixels", "--gain-pixels"),
+                   default=None, metavar="N", help="tiled: pixels of the whole capture the "
+                   "gains are fitted on (>= 1; default 4096)")
 
 
 def _add_relight_parser(sub: argparse._SubParsersAction) -> None:

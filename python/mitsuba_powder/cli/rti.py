@@ -67,6 +67,9 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
     from ..rti.gains import GainOptions
     from ..rti.maps import write_maps
 
+    if args.tile_size is not None:
+        return _cmd_fit_maps_tiled(args)
+    _check_untiled(args)
     capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
     k, h, w, c = capture.images.shape
     print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
@@ -79,12 +82,87 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
                       max_iterations=args.iterations, rounds=args.rounds, progress=print,
                       light_distance=distance, gain_model=options)
     path = write_maps(result, args.out, capture, list(capture.names), args.pixel_size)
+    _print_maps_summary(result, path, args.out)
+    return 0
+
+
+def _print_maps_summary(result, path, out: str) -> None:
+    """What fit-maps found: the free properties and each map's median and 5-95 % range."""
     info = json.loads(path.read_text())
     print(f"free per pixel: normal + {', '.join(result.free)} ({result.n_parameters} numbers)")
     for name, st in info["statistics"].items():
         if st.get("median") is not None:
             print(f"  {name}: median {st['median']:.4g} (5-95 %: {st['p5']:.4g}-{st['p95']:.4g})")
-    print(f"wrote {args.out}: maps (EXR), fit.json, scene.xml")
+    print(f"wrote {out}: maps (EXR), fit.json, scene.xml")
+
+
+#: fit-maps options that need --tile-size, by attribute
+_TILE_OPTIONS = {"workers": "--workers", "scheduler": "--scheduler", "resume": "--resume",
+                 "gain_pixels": "--gain-pixels"}
+
+
+def _check_untiled(args: argparse.Namespace) -> None:
+    """Without --tile-size the tile options have no meaning: name the one given."""
+    for attr, option in _TILE_OPTIONS.items():
+        if getattr(args, attr) not in (None, False):
+            raise ValueError(f"{option} applies to tiled fits only; give --tile-size N "
+                             "(pixels, >= 8) as well")
+
+
+def _check_tiled(args: argparse.Namespace) -> None:
+    """The options a tiled fit does not take yet (a tile is fitted as an image of its own:
+    near-field lights need the pixels' positions in the whole image)."""
+    for given, option, value in (
+            (args.light_distance not in (None, "inf"), "--light-distance",
+             args.light_distance),
+            (args.pixel_size is not None, "--pixel-size", args.pixel_size),
+            (args.gain_model != "free", "--gain-model", args.gain_model),
+            (args.gain_spread is not None, "--gain-spread", args.gain_spread)):
+        if given:
+            raise ValueError(f"{option} {value} is not supported with --tile-size; tiled fits "
+                             "take distant lights (--light-distance inf) and free gains")
+
+
+def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
+    """fit-maps --tile-size: rti.fit_maps_tiled on a Dask cluster, then the maps written."""
+    import numpy as np
+
+    from ..outputs import note_input, note_inputs, output_path
+    from ..rti import MAP_DEFAULT_FREE, Capture, lp_image_paths, read_lp
+    from ..rti.cluster import open_client
+    from ..rti.maps import maps_files, write_maps
+    from ..rti.tiles import GAIN_PIXELS, fit_maps_tiled
+
+    _check_tiled(args)
+    names, directions = read_lp(args.capture)
+    note_inputs(lp_image_paths(args.capture, names))
+    if args.mask is not None:
+        note_input(args.mask)
+    free = _names(args.free) or MAP_DEFAULT_FREE
+    fixed = _fixed_properties(args.set)
+    for name in maps_files([n for n in free if n != "albedo"] + list(fixed)):
+        output_path(args.out, name, mkdir=False)  # a refused output fails before the fit
+    with open_client(scheduler=args.scheduler, workers=args.workers,
+                     names=("--scheduler", "--workers")) as client:
+        workers = len(client.scheduler_info()["workers"])
+        print(f"cluster: {client.scheduler.address}, {workers} worker(s), dashboard "
+              f"{client.dashboard_link}")
+        result = fit_maps_tiled(
+            args.capture, args.out, args.tile_size, encoding=args.encoding, mask=args.mask,
+            gains=args.gains, gain_pixels=args.gain_pixels or GAIN_PIXELS, client=client,
+            resume=args.resume, log=print, free=free, fixed=fixed,
+            max_iterations=args.iterations,
+            rounds=args.rounds)
+    tiles = result.fit_settings["tiles"]
+    print(f"tiles: {tiles['fitted']} fitted, {tiles['resumed']} resumed or empty, in "
+          f"{result.fit_settings['seconds']:.1f} s")
+    header = result.fit_settings["capture"]
+    like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=directions,
+                   names=list(names), encoding=header["encoding"],
+                   file_format=header["file_format"], bit_depth=int(header["bit_depth"]),
+                   lp_path=header["lp"])
+    path = write_maps(result, args.out, like, list(names))
+    _print_maps_summary(result, path, args.out)
     return 0
 
 

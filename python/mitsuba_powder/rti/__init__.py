@@ -10,6 +10,9 @@ Modules, one job each:
 * :mod:`~mitsuba_powder.rti.problem`: the least-squares problems of pixels and light gains;
 * :mod:`~mitsuba_powder.rti.fit`: :func:`fit_maps` and what a dome of lights determines;
 * :mod:`~mitsuba_powder.rti.result`: :class:`MapsResult` and :func:`relight`;
+* :mod:`~mitsuba_powder.rti.tiles`: :func:`~mitsuba_powder.rti.tiles.fit_maps_tiled`, the fit
+  in tiles on a Dask cluster (:mod:`~mitsuba_powder.rti.cluster`), imported from there (not
+  here: importing this package does not import Dask);
 * :mod:`~mitsuba_powder.rti.synthetic`: SYNTHETIC captures of known maps;
 * :mod:`~mitsuba_powder.rti.maps`: fitted maps on disk (EXR, ``fit.json``, a scene);
 * :mod:`~mitsuba_powder.rti.baselines`: PTM, HSH and Lambertian per-pixel baselines;

@@ -56,7 +56,8 @@ from ..outputs import guarding_inputs, note_input, note_inputs, output_names, ou
 from ..variants import use_variant
 
 __all__ = ["Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
-           "lp_image_paths", "read_image", "read_lp", "read_mask", "write_images", "write_lp"]
+           "lp_image_paths", "read_image", "read_image_window", "read_lp", "read_mask",
+           "write_images", "write_lp"]
 
 #: the transfer functions between file values and linear values
 ENCODINGS = ("srgb", "linear")
@@ -281,6 +282,25 @@ def read_image(path: str | Path, encoding: str = "srgb") -> tuple[np.ndarray, st
     Returns:
         (values float32 (H, W, C) with 1.0 = full scale, file format, bit depth).
     """
+    values, file_format, depth, _ = read_image_window(path, encoding)
+    return values, file_format, depth
+
+
+def read_image_window(path: str | Path, encoding: str = "srgb",
+                      window: tuple[int, int, int, int] | None = None
+                      ) -> tuple[np.ndarray, str, int, tuple[int, int]]:
+    """Linear values of a window of one image file (the file is decoded whole, the window
+    cut out before the transfer function is applied).
+
+    Args:
+        path: ``.png`` (8/16 bit), ``.jpg``/``.jpeg`` or ``.exr``.
+        encoding: ``srgb`` or ``linear`` (module docstring).
+        window: ``(row0, row1, col0, col1)`` pixels (end exclusive), or None (all).
+
+    Returns:
+        (values float32 (row1 - row0, col1 - col0, C) with 1.0 = full scale, file format,
+        bit depth, (H, W) of the whole image).
+    """
     _check_encoding(encoding)
     p = Path(path)
     file_format = _FORMATS.get(p.suffix.lower())
@@ -291,13 +311,20 @@ def read_image(path: str | Path, encoding: str = "srgb") -> tuple[np.ndarray, st
         raise FileNotFoundError(f"image {p} does not exist")
     note_input(p)
     raw, depth = _bitmap(p)
+    shape = (int(raw.shape[0]), int(raw.shape[1]))
+    if window is not None:
+        r0, r1, c0, c1 = window
+        if not (0 <= r0 < r1 <= shape[0] and 0 <= c0 < c1 <= shape[1]):
+            raise ValueError(f"image {p}: window rows {r0}-{r1}, columns {c0}-{c1} is not "
+                             f"inside its {shape[1]} x {shape[0]} pixels")
+        raw = raw[r0:r1, c0:c1]
     if raw.dtype == np.uint8:
         values = raw.astype(np.float32) / np.float32(255.0)
     elif raw.dtype == np.uint16:
         values = raw.astype(np.float32) / np.float32(65535.0)
     else:
         values = raw.astype(np.float32)
-    return decode(values, encoding), file_format, depth
+    return decode(values, encoding), file_format, depth, shape
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:

@@ -211,6 +211,13 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
                          emitter=emitter, defaults=defaults)
 
 
+def maps_files(map_names) -> list[str]:
+    """The files :func:`write_maps` writes for maps of these property names."""
+    return ([f"{name}.exr" for name in map_names]
+            + ["albedo.exr", "normal.exr", NORMAL_TANGENT, "residual.exr", "mask.exr",
+               "scene.xml", "fit.json"])
+
+
 def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None = None,
                light_names: list[str] | None = None, pixel_size: float | None = None) -> Path:
     """Write a fit to ``out_dir`` (module docstring); returns the path of ``fit.json``.
@@ -226,10 +233,8 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
     """
     out = Path(out_dir)
     maps = result.as_maps()
-    files = ([f"{name}.exr" for name in result.maps]
-             + ["albedo.exr", "normal.exr", NORMAL_TANGENT, "residual.exr", "mask.exr",
-                "scene.xml", "fit.json"])
-    target = {name: output_path(out, name) for name in files}  # all checked before writing
+    target = {name: output_path(out, name) for name in maps_files(result.maps)}  # all checked
+    # before writing
     for name in result.maps:
         _write_exr(target[f"{name}.exr"], np.asarray(maps[name], dtype=np.float32))
     # the albedo per channel (with a grain-size map: the grains', for reading only)
