@@ -207,6 +207,30 @@ def test_cli_tile_options_need_a_tile_size(capture_lp, tmp_path, capsys):
     assert "--resume applies to tiled fits only" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--light-distance", "3"], "--light-distance 3 is not supported with --tile-size"),
+    (["--light-distance", "fit"], "--light-distance fit is not supported with --tile-size"),
+    (["--pixel-size", "0.1"], "--pixel-size 0.1 is not supported with --tile-size"),
+    (["--gain-model", "smooth"], "--gain-model smooth is not supported with --tile-size"),
+])
+def test_cli_tiled_fits_refuse_near_field_options(capture_lp, tmp_path, capsys, extra,
+                                                   message):
+    """A tile is fitted as an image of its own: near-field lights, which depend on the
+    pixels' positions in the whole image, are refused before anything starts."""
+    out = tmp_path / "maps"
+    assert main(["fit-maps", str(capture_lp), "--out", str(out), "--tile-size", "16",
+                 *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_api_tiled_fit_refuses_lights_at_a_distance(capture_lp, tmp_path):
+    with pytest.raises(ValueError, match="light_distance = 3.0 is not supported by tiled "
+                                         "fits; valid value: inf"):
+        fit_maps_tiled(capture_lp, tmp_path / "maps", 16, light_distance=3.0)
+    assert not (tmp_path / "maps").exists()
+
+
 def test_cli_tiled_fit_writes_maps_and_resumes(capture_lp, tmp_path, capsys):
     out = tmp_path / "maps"
     args = ["fit-maps", str(capture_lp), "--out", str(out), "--encoding", "linear",
