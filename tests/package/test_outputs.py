@@ -207,16 +207,20 @@ def test_fit_maps_and_compare_maps_with_out_equal_to_the_capture(tmp_path, captu
     assert "compare.json" in after
 
 
-def test_fit_maps_refuses_to_write_over_its_mask(tmp_path, capture, capsys):
+@pytest.mark.parametrize("tiles", [[], ["--tile-size", "8", "--workers", "1"]],
+                         ids=["untiled", "tiled"])
+def test_fit_maps_refuses_to_write_over_its_mask(tmp_path, capture, capsys, tiles):
+    """The user's mask is named as a map fit-maps writes, in the output folder: refused
+    before anything is written (tiled: before a cluster starts or a tile is fitted)."""
     work = _copy(capture, tmp_path / "cap")
-    # the user's mask is named as a map fit-maps writes, in the output folder
     with use_variant("scalar_rgb"):
         mi.Bitmap(np.ones((8, 8, 1), np.float32), mi.Bitmap.PixelFormat.Y).write(
             str(work / "mask.exr"))
     before = snapshot(work)
     assert main(["fit-maps", str(work / "dirs.lp"), "--out", str(work), "--mask",
-                 str(work / "mask.exr"), "--rounds", "1", "--iterations", "4"]) == 2
-    assert "mask.exr" in capsys.readouterr().err
+                 str(work / "mask.exr"), "--rounds", "1", "--iterations", "4", *tiles]) == 2
+    err = capsys.readouterr().err
+    assert "mask.exr" in err and "is an input file" in err
     assert snapshot(work) == before
 
 
@@ -230,18 +234,6 @@ def test_tiled_fit_maps_with_out_equal_to_the_capture(tmp_path, capture):
     assert "fit.json" in after and "tiles/tile_r0000_c0000.npz" in after
     assert not any(n.endswith(".part") for n in after)  # tiles renamed into place
 
-
-def test_tiled_fit_maps_refuses_its_mask_before_fitting(tmp_path, capture, capsys):
-    work = _copy(capture, tmp_path / "cap")
-    with use_variant("scalar_rgb"):
-        mi.Bitmap(np.ones((8, 8, 1), np.float32), mi.Bitmap.PixelFormat.Y).write(
-            str(work / "mask.exr"))
-    before = snapshot(work)
-    assert main(["fit-maps", str(work / "dirs.lp"), "--out", str(work), "--mask",
-                 str(work / "mask.exr"), "--tile-size", "8", "--workers", "1"]) == 2
-    err = capsys.readouterr().err
-    assert "mask.exr" in err and "is an input file" in err
-    assert snapshot(work) == before  # refused before a cluster or a tile
 
 
 def test_compare_maps_refuses_an_input_named_as_its_output(tmp_path, capture, capsys):
