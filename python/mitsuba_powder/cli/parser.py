@@ -294,10 +294,11 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
                    help="Levenberg-Marquardt iterations per round")
     p.add_argument("--rounds", type=int, default=3,
                    help="alternations of the per-pixel fit with the gains")
-    p.add_argument("--gain-model", choices=("free", "smooth"), default="free",
-                   help="free: each fitted light keeps its gain, a light not fitted gets the "
-                        "smooth trend of the gains in its direction; smooth: the gains are "
-                        "the trend (with residuals of relative spread --gain-spread)")
+    p.add_argument("--gain-model", choices=("none", "free", "smooth"), default="none",
+                   help="none: a light not fitted has gain 1 (the gains' mean); free: each "
+                        "fitted light keeps its gain, a light not fitted gets the smooth "
+                        "trend of the gains in its direction; smooth: the gains are the trend "
+                        "(with residuals of relative spread --gain-spread)")
     p.add_argument("--gain-degree", type=int, default=2,
                    help="degree of the gains' trend, a polynomial in sin(elevation) (0-6)")
     p.add_argument("--gain-spread", type=float, default=None, metavar="TAU",

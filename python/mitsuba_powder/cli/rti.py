@@ -116,7 +116,7 @@ def _check_tiled(args: argparse.Namespace) -> None:
             (args.light_distance not in (None, "inf"), "--light-distance",
              args.light_distance),
             (args.pixel_size is not None, "--pixel-size", args.pixel_size),
-            (args.gain_model != "free", "--gain-model", args.gain_model),
+            (args.gain_model not in ("none", "free"), "--gain-model", args.gain_model),
             (args.gain_spread is not None, "--gain-spread", args.gain_spread)):
         if given:
             raise ValueError(f"{option} {value} is not supported with --tile-size; tiled fits "

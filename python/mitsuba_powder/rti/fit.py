@@ -497,7 +497,8 @@ def _result(ev: PixelEvaluator, data: _FitData, layout: list, specs: Mapping[str
         maps={n: to_map(v) for n, v in values.items()}, settings=data.settings,
         residual_rms=to_map(rms_map), gains=g, used=used, free=data.free, mask=data.mask,
         variant=variant, fit_settings=fit_settings, light_distance=data.light_distance,
-        gain_model=data.gain_model.fit(data.d, g, state.information))
+        gain_model=(None if data.gain_model.mode == "none" else
+                    data.gain_model.fit(data.d, g, state.information)))
 
 
 # ---------------------------------------------------------------------------
@@ -546,8 +547,9 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
             light fitted with the gains (:mod:`mitsuba_powder.rti.distance`: a Lambertian
             scan, then a polish with this fit on a subsample of pixels).
         gain_model: how the gains generalise to lights not fitted
-            (:class:`~mitsuba_powder.rti.gains.GainOptions`; default ``free``: the fitted
-            gains unchanged, a smooth trend in the light direction for other lights).
+            (:class:`~mitsuba_powder.rti.gains.GainOptions`; default ``none``: gain 1 for a
+            light not fitted; ``free``: the fitted gains unchanged, a smooth trend in the light
+            direction for other lights).
 
     Returns:
         A :class:`~mitsuba_powder.rti.result.MapsResult`.

@@ -297,10 +297,12 @@ def fit_gain_model(directions: np.ndarray, gains: np.ndarray, weights: np.ndarra
     return GainModel(c, int(degree), int(azimuth_order), lz_range, lam, d, delta)
 
 
-#: How the per-pixel fit uses the gain model: ``free`` (every fitted light keeps its own gain;
-#: the model gives the gain of a light not fitted) or ``smooth`` (the gains are the model's,
-#: with residuals regularised by the spread)
-GAIN_MODEL_MODES = ("free", "smooth")
+#: How the per-pixel fit uses the gain model: ``none`` (no model: a light not fitted has gain 1,
+#: the gains' mean; the default, since on real captures the gains also absorb shadows and model
+#: error at grazing light and their trend relit held-out lights worse than 1: docs/rti.md),
+#: ``free`` (every fitted light keeps its own gain; the model gives the gain of a light not
+#: fitted) or ``smooth`` (the gains are the model's, with residuals regularised by the spread)
+GAIN_MODEL_MODES = ("none", "free", "smooth")
 
 
 @dataclass(frozen=True)
@@ -308,7 +310,7 @@ class GainOptions:
     """How :func:`mitsuba_powder.rti.fit_maps` models its per-light gains.
 
     Attributes:
-        mode: ``free`` or ``smooth`` (:data:`GAIN_MODEL_MODES`).
+        mode: ``none``, ``free`` or ``smooth`` (:data:`GAIN_MODEL_MODES`).
         degree: polynomial degree in ``l_z`` (lowered to what the lights' elevations
             determine).
         azimuth_order: 0-2 (module docstring).
@@ -316,7 +318,7 @@ class GainOptions:
             trend (e.g. 0.02 = 2 %), > 0; None: the gains are the trend exactly.
     """
 
-    mode: str = "free"
+    mode: str = "none"
     degree: int = 2
     azimuth_order: int = 0
     spread: float | None = None
@@ -340,7 +342,7 @@ class GainOptions:
         """The ridge strength of :func:`fit_gain_model` for the gains' raw weights (the
         Gauss-Newton information of ``ln g_k``): 0 (``free``), inf (``smooth`` without a
         spread) or ``1 / (tau^2 mean(w))``."""
-        if self.mode == "free":
+        if self.mode in ("none", "free"):
             return 0.0
         if self.spread is None or raw_weights is None:
             return math.inf
