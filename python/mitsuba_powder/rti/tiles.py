@@ -511,6 +511,19 @@ def _assemble(out: Path, tiles: list[Tile], shape: tuple[int, int], gains: np.nd
         fit_settings=_fit_settings(metas, extra))
 
 
+def _tiles_to_fit(out: Path, tiles: list[Tile], fit_mask: np.ndarray, settings_hash: str,
+                  lights: int, resume: bool) -> list[Tile]:
+    """The tiles still to fit: those not finished with these settings (``resume``) that
+    have masked pixels; a tile without any is written at once as empty."""
+    done = _finished(out, tiles, settings_hash) if resume else set()
+    for tile in tiles:
+        r0, r1, c0, c1 = tile.window
+        if tile not in done and not fit_mask[r0:r1, c0:c1].any():
+            _write_atomic(out, tile.name, _tile_arrays(None, tile, settings_hash, lights))
+            done.add(tile)
+    return [t for t in tiles if t not in done]
+
+
 def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size: int = 256,
                    *, encoding: str = "srgb", mask=None, gains: str = "fit",
                    initial_gains: np.ndarray | None = None, gain_pixels: int = GAIN_PIXELS,
@@ -572,14 +585,7 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
         held = _held_gains(cl, plan, out, shape, fit_mask, key, resume, log)
         settings_hash = _hash({"gains_key": key, "held": held, "tile_size": size})
         tiles = plan_tiles(shape, size)
-        done = _finished(out, tiles, settings_hash) if resume else set()
-        for tile in tiles:
-            r0, r1, c0, c1 = tile.window
-            if tile not in done and not fit_mask[r0:r1, c0:c1].any():
-                _write_atomic(out, tile.name, _tile_arrays(None, tile, settings_hash,
-                                                           len(plan.paths)))
-                done.add(tile)
-        todo = [t for t in tiles if t not in done]
+        todo = _tiles_to_fit(out, tiles, fit_mask, settings_hash, len(plan.paths), resume)
         log(f"tiles: {len(tiles)} of up to {size} x {size} px, {len(todo)} to fit, "
             f"{len(tiles) - len(todo)} done already or without masked pixels")
         with tqdm(total=len(tiles), initial=len(tiles) - len(todo), unit="tile", desc="tiles",
