@@ -339,8 +339,15 @@ def _add_tile_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true",
                    help="tiled: keep the tiles already in OUT/tiles (of the same settings)")
     p.add_argument("--gain-pixels", type=_checked("tiles.check_gain_pixels", "--gain-pixels"),
-                   default=None, metavar="N", help="tiled: pixels of the whole capture the "
-                   "gains are fitted on (>= 1; default 4096)")
+                   default=None, metavar="N", help="pixels of the whole capture the gains "
+                   "are fitted on, then held for every pixel (>= 1; default 16384)")
+    p.add_argument("--memory-gb", type=_checked("fit.check_memory", "--memory-gb"),
+                   default=None, metavar="GB", help="working memory of the fit besides the "
+                   "images, GiB (> 0; default an eighth of this machine's, at most 2): pixels "
+                   "are fitted in blocks that fit in it")
+    p.add_argument("--solver", choices=("drjit", "numpy"), default="drjit",
+                   help="per-pixel solver: drjit (normal equations in Dr.Jit kernels, "
+                        "default) or numpy (the reference)")
 
 
 def _add_relight_parser(sub: argparse._SubParsersAction) -> None:

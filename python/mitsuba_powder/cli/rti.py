@@ -64,6 +64,7 @@ def _light_distance(args: argparse.Namespace, capture) -> tuple[object, str]:
 
 def _cmd_fit_maps(args: argparse.Namespace) -> int:
     from ..rti import fit_maps, load_capture
+    from ..rti.fit import GAIN_PIXELS
     from ..rti.gains import GainOptions
     from ..rti.maps import write_maps
 
@@ -80,7 +81,8 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
     result = fit_maps(capture.images, capture.directions, free=free, mask=capture.mask,
                       fixed=_fixed_properties(args.set), gains=args.gains,
                       max_iterations=args.iterations, rounds=args.rounds, progress=print,
-                      light_distance=distance, gain_model=options)
+                      light_distance=distance, gain_model=options, solver=args.solver,
+                      gain_pixels=args.gain_pixels or GAIN_PIXELS, memory_gb=args.memory_gb)
     path = write_maps(result, args.out, capture, list(capture.names), args.pixel_size)
     _print_maps_summary(result, path, args.out)
     return 0
@@ -97,8 +99,7 @@ def _print_maps_summary(result, path, out: str) -> None:
 
 
 #: fit-maps options that need --tile-size, by attribute
-_TILE_OPTIONS = {"workers": "--workers", "scheduler": "--scheduler", "resume": "--resume",
-                 "gain_pixels": "--gain-pixels"}
+_TILE_OPTIONS = {"workers": "--workers", "scheduler": "--scheduler", "resume": "--resume"}
 
 
 def _check_untiled(args: argparse.Namespace) -> None:
@@ -152,7 +153,7 @@ def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
             gains=args.gains, gain_pixels=args.gain_pixels or GAIN_PIXELS, client=client,
             resume=args.resume, log=print, free=free, fixed=fixed,
             max_iterations=args.iterations,
-            rounds=args.rounds)
+            rounds=args.rounds, solver=args.solver, memory_gb=args.memory_gb)
     tiles = result.fit_settings["tiles"]
     print(f"tiles: {tiles['fitted']} fitted, {tiles['resumed']} resumed or empty, in "
           f"{result.fit_settings['seconds']:.1f} s")

@@ -8,6 +8,7 @@ Modules, one job each:
 * :mod:`~mitsuba_powder.rti.forward`: the per-pixel forward model (:func:`render_capture`);
 * :mod:`~mitsuba_powder.rti.starts`: Lambertian photometric stereo and the grain-size search;
 * :mod:`~mitsuba_powder.rti.problem`: the least-squares problems of pixels and light gains;
+* :mod:`~mitsuba_powder.rti.engine`: the per-pixel solver inside Dr.Jit kernels;
 * :mod:`~mitsuba_powder.rti.fit`: :func:`fit_maps` and what a dome of lights determines;
 * :mod:`~mitsuba_powder.rti.result`: :class:`MapsResult` and :func:`relight`;
 * :mod:`~mitsuba_powder.rti.tiles`: :func:`~mitsuba_powder.rti.tiles.fit_maps_tiled`, the fit
@@ -38,7 +39,7 @@ from .capture import (
     write_images,
     write_lp,
 )
-from .fit import GAIN_MODES, fit_maps, max_correlation_length
+from .fit import GAIN_MODES, GAIN_PIXELS, SOLVERS, fit_maps, max_correlation_length
 from .forward import MAX_LANES, VARIANT, render_capture
 from .properties import (
     FREE_PROPERTIES,
@@ -71,8 +72,8 @@ __all__ = [
     "MAP_PROPERTIES", "SLOPE_LIMIT", "SPECS", "grain_map_name",
     # forward model, starts, fit, result
     "MAX_LANES", "VARIANT", "render_capture", "START_EXTINCTIONS", "START_SIZES",
-    "lambertian_start", "GAIN_MODES", "fit_maps", "max_correlation_length", "MapsResult",
-    "relight",
+    "lambertian_start", "GAIN_MODES", "GAIN_PIXELS", "SOLVERS", "fit_maps",
+    "max_correlation_length", "MapsResult", "relight",
     # synthetic captures
     "SYNTHETIC_GRAIN_REGIONS", "SYNTHETIC_REGIONS", "SYNTHETIC_REGION_SETS", "dome_directions",
     "synthetic_capture", "synthetic_maps",

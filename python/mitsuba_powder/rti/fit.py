@@ -65,6 +65,8 @@ of the synthetic capture are within 4 % (``tests/rti/test_rti_fit.py``, docs/rti
 from __future__ import annotations
 
 import math
+import os
+import resource
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -74,6 +76,7 @@ import numpy as np
 from ..fitting.optimise import ParamSpec, batch_levenberg_marquardt
 from .checks import check_count, check_directions, check_gains, check_images, check_range
 from .distance import polish_inverse_distance, scan_inverse_distance, subsample_mask
+from .engine import PixelSystem
 from .forward import (
     MAX_LANES,
     VARIANT,
@@ -98,10 +101,30 @@ from .properties import (
 from .result import MapsResult
 from .starts import PixelStarts
 
-__all__ = ["GAIN_MODES", "fit_light_distance", "fit_maps", "max_correlation_length"]
+__all__ = ["GAIN_MODES", "GAIN_PIXELS", "MEMORY_GB_MAX", "SOLVERS", "block_pixels",
+           "check_memory", "default_memory_gb", "fit_light_distance", "fit_maps",
+           "gain_sample", "max_correlation_length", "peak_memory_mib"]
 
 #: Gain modes of :func:`fit_maps`
 GAIN_MODES = ("fit", "fixed")
+
+#: Pixels of the subsample the per-light gains are fitted on (then held for every pixel)
+GAIN_PIXELS = 16384
+
+#: Largest default working memory of a fit, GiB (:func:`default_memory_gb`)
+MEMORY_GB_MAX = 2.0
+
+#: Bytes per observation (pixel x light) of a block's NumPy working set (measured with
+#: benchmarks/bench_rti_fit.py: observations and model as float32, weights, flags, starts)
+OBSERVATION_BYTES = 200
+
+#: Bytes per lane of a Dr.Jit evaluation of the per-pixel solver (its inputs, the products
+#: of the normal equations, the model's temporaries)
+LANE_BYTES = 320
+
+#: Per-pixel solvers of :func:`fit_maps`: the Dr.Jit engine (:mod:`mitsuba_powder.rti.engine`)
+#: and the NumPy reference (:func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`)
+SOLVERS = ("drjit", "numpy")
 
 
 def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) -> float:
@@ -123,6 +146,91 @@ def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) ->
     return float(wavelength * 1e-3 / (math.pi * max(spacing, 1e-6) / 2))
 
 
+def default_memory_gb() -> float:
+    """The default working memory of a fit, GiB: an eighth of this machine's memory, at most
+    :data:`MEMORY_GB_MAX`."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    except (ValueError, OSError, AttributeError):
+        return MEMORY_GB_MAX
+    return float(min(MEMORY_GB_MAX, max(total / 8.0, 0.25)))
+
+
+def check_memory(memory_gb: float | str | None, name: str = "memory_gb") -> float:
+    """``memory_gb`` (GiB) checked (> 0, finite), or the default (None)."""
+    if memory_gb is None:
+        return default_memory_gb()
+    return check_range(name, memory_gb, 0.0, math.inf, open_lower=True, open_upper=True)
+
+
+def block_pixels(memory_gb: float, lights: int) -> int:
+    """Pixels of a block whose NumPy working set (observations, model, weights, flags and
+    temporaries: :data:`OBSERVATION_BYTES` per pixel and light) takes half of ``memory_gb``."""
+    return max(1, int(memory_gb * 2**30 / 2 / (OBSERVATION_BYTES * max(lights, 1))))
+
+
+def _lanes_within(memory_gb: float, max_lanes: int) -> int:
+    """``max_lanes`` lowered so that a Dr.Jit evaluation (:data:`LANE_BYTES` a lane) takes at
+    most half of ``memory_gb``."""
+    return max(1, min(int(max_lanes), int(memory_gb * 2**30 / 2 / LANE_BYTES)))
+
+
+def peak_memory_mib() -> float:
+    """This process's peak resident memory so far, MiB (Linux ``ru_maxrss``, KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _pixel_blocks(mask: np.ndarray, lights: int, memory_gb: float, gains_fitted: bool
+                  ) -> list[np.ndarray]:
+    """The masked pixels in blocks of at most :func:`block_pixels` (bands of the image in
+    row-major order), bool (H, W) each; one block when the gains are fitted with the maps
+    (they couple every pixel)."""
+    flat = np.flatnonzero(mask)
+    size = block_pixels(memory_gb, lights)
+    if gains_fitted or len(flat) <= size:
+        return [mask]
+    count = math.ceil(len(flat) / size)
+    blocks = []
+    for part in np.array_split(flat, count):
+        block = np.zeros(mask.size, dtype=bool)
+        block[part] = True
+        blocks.append(block.reshape(mask.shape))
+    return blocks
+
+
+def _merge_blocks(results: Sequence[MapsResult], mask: np.ndarray) -> MapsResult:
+    """One result of the blocks' results (each NaN outside its block)."""
+    first = results[0]
+    out = MapsResult(
+        normals=first.normals.copy(), albedo=first.albedo.copy(),
+        maps={n: v.copy() for n, v in first.maps.items()}, settings=first.settings,
+        residual_rms=first.residual_rms.copy(), gains=first.gains, used=first.used.copy(),
+        free=first.free, mask=mask, variant=first.variant,
+        fit_settings=dict(first.fit_settings), light_distance=first.light_distance,
+        gain_model=first.gain_model)
+    for r in results[1:]:
+        sel = r.mask
+        out.normals[sel], out.albedo[sel] = r.normals[sel], r.albedo[sel]
+        out.residual_rms[sel] = r.residual_rms[sel]
+        for name, value in r.maps.items():
+            out.maps[name][sel] = value[sel]
+        out.used[:, sel] = r.used[:, sel]
+        for key in ("evaluations", "chunks", "underdetermined_pixels"):
+            out.fit_settings[key] += r.fit_settings[key]
+        out.fit_settings["iterations_last_round"] = max(
+            out.fit_settings["iterations_last_round"], r.fit_settings["iterations_last_round"])
+    return out
+
+
+def gain_sample(mask: np.ndarray, pixels: int, seed: int = 0) -> np.ndarray:
+    """The flat indices (sorted) of at most ``pixels`` True pixels of ``mask`` drawn at random
+    without replacement (``seed``); all of them when there are not more."""
+    flat = np.flatnonzero(mask)
+    if len(flat) > pixels:
+        flat = np.sort(np.random.default_rng(seed).choice(flat, pixels, replace=False))
+    return flat
+
+
 # ---------------------------------------------------------------------------
 #  Set-up: the checked inputs
 # ---------------------------------------------------------------------------
@@ -131,9 +239,9 @@ def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) ->
 class _FitData:
     """The checked inputs of a fit, restricted to the masked pixels (P of them)."""
 
-    obs: np.ndarray                    # (P, K, 3) float64 observations
+    obs: np.ndarray                    # (P, K, 3) float32 observations
     d: np.ndarray                      # (K, 3) unit vectors towards the lights
-    mask: np.ndarray                   # (H, W) bool, the fitted pixels
+    mask: np.ndarray                   # (H, W) bool, the fitted pixels (P of them)
     free: list[str]                    # the free properties (besides the normal)
     others: list[str]                  # the free ones that are neither albedo nor grain size
     grain_name: str                    # the per-pixel grain size of the settings
@@ -152,6 +260,7 @@ class _FitData:
     shadow_floor: float
     max_lanes: int
     gain_model: GainOptions = GainOptions()
+    solver: str = "drjit"
     field: tuple[np.ndarray, np.ndarray] | None = None  # near-field lights: (P, K, 3), (P, K)
     light_distance: float | np.ndarray = math.inf        # r in image widths
 
@@ -201,11 +310,14 @@ def _check_free(free: Sequence[str] | None) -> list[str]:
 
 
 def _check_options(gains: str, max_iterations: int, rounds: int, saturation: float,
-                   shadow_ratio: float, shadow_floor: float, max_lanes: int) -> dict:
+                   shadow_ratio: float, shadow_floor: float, max_lanes: int,
+                   solver: str = "drjit") -> dict:
     """The fit's scalar options, checked, by :class:`_FitData` field name."""
     if gains not in GAIN_MODES:
         raise ValueError(f"gains = {gains!r} is not a gain mode; choose one of {GAIN_MODES}")
-    return {"gain_mode": gains,
+    if solver not in SOLVERS:
+        raise ValueError(f"solver = {solver!r} is not a solver; choose one of {SOLVERS}")
+    return {"gain_mode": gains, "solver": solver,
             "max_iterations": check_count("max_iterations", max_iterations, 1),
             "rounds": check_count("rounds", rounds, 1),
             "saturation": check_range("saturation", saturation, 0.0, math.inf,
@@ -280,9 +392,11 @@ def _held(fixed: Mapping | None, free: list[str], mask: np.ndarray) -> dict:
 
 def _set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | None,
             mask: np.ndarray | None, fixed: Mapping | None, initial_gains: np.ndarray | None,
-            options: Mapping, light_distance: float | np.ndarray = math.inf) -> _FitData:
+            options: Mapping, light_distance: float | np.ndarray = math.inf,
+            pixels: np.ndarray | bool | None = None) -> _FitData:
     """Check every input of :func:`fit_maps` (in the order of its arguments) and gather the
-    masked pixels' observations."""
+    observations of the masked pixels, or of ``pixels`` (bool (H, W), a subset of the mask:
+    a block), or of none (``pixels=False``: a plan, whose ``mask`` is the whole mask)."""
     imgs = check_images(images)
     k, h, w, _ = imgs.shape
     d = check_directions(directions)
@@ -292,12 +406,17 @@ def _set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | No
     checked = _check_options(**options)
     g = check_gains(initial_gains, k)
     mask = _check_mask(mask, (h, w))
-    held = _held(fixed, free, mask)
+    if pixels is False:
+        sel = np.zeros_like(mask)
+    else:
+        sel = mask if pixels is None else mask & pixels
+        mask = sel
+    held = _held(fixed, free, sel)
     others = [n for n in free if n != "albedo" and n not in GRAIN_MAPS]
-    obs = np.ascontiguousarray(imgs[:, mask].transpose(1, 0, 2)).astype(np.float64)
+    obs = np.ascontiguousarray(imgs[:, sel].transpose(1, 0, 2), dtype=np.float32)
     return _FitData(obs=obs, d=d, mask=mask, free=free, others=others, gains=g,
                     scale=float(np.mean(g)), **held, **checked,
-                    field=near_field(d, light_distance, (h, w), mask),
+                    field=near_field(d, light_distance, (h, w), sel),
                     light_distance=light_distance)
 
 
@@ -373,7 +492,7 @@ class _State:
     y: np.ndarray           # (P, variables + 1) fitted rows
     gains: np.ndarray       # (K,)
     weights: np.ndarray     # (P, K) observation weights in {0, 1}
-    value: np.ndarray       # (P, K, 3) the model without gain at the fitted rows
+    value: np.ndarray       # (P, K, 3) float32, the model without gain at the fitted rows
     chunks: list[slice]
     information: np.ndarray | None = None  # (K,) diagonal of the gains' reduced system
     iterations: int = 0
@@ -385,6 +504,8 @@ def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
                ) -> tuple[np.ndarray, np.ndarray] | None:
     """Fit the pixels ``s`` from ``y_start`` under the current gains; update ``state``; with
     ``with_gains`` return their part of the gains' reduced system."""
+    if data.solver == "drjit":
+        return _fit_chunk_drjit(ev, data, layout, state, y_start, s, with_gains)
     prob = PixelProblem(ev, data.obs[s], state.weights[s], data.lights(s), state.gains, layout,
                         {n: v[s] for n, v in data.fixed_maps.items()},
                         None if data.fixed_albedo is None else data.fixed_albedo[s], data.grain,
@@ -415,17 +536,41 @@ def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
     return part
 
 
+def _fit_chunk_drjit(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
+                     y_start: np.ndarray, s: slice, with_gains: bool
+                     ) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`_fit_chunk` by the Dr.Jit engine (:class:`~mitsuba_powder.rti.engine.PixelSystem`).
+    """
+    system = PixelSystem(ev, data.obs[s], state.weights[s], data.lights(s), state.gains,
+                         layout, {n: v[s] for n, v in data.fixed_maps.items()},
+                         None if data.fixed_albedo is None else data.fixed_albedo[s],
+                         data.grain, data.irradiance(s))
+    fitted = system.solve(y_start[s], data.max_iterations)
+    state.y[s, :-1] = fitted.y
+    state.iterations = max(state.iterations, fitted.iterations)
+    state.value[s], part = system.model(fitted.y, with_gains)
+    state.evaluations += system.evaluations
+    return part
+
+
 def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: _FitData, layout: list,
                y: np.ndarray, wt: np.ndarray, log: _Log) -> _State:
     """Rounds of the per-pixel fit alternated with a Gauss-Newton step of the gains (mode
     ``fit``) and new shadow flags; a final per-pixel fit follows the last gain update."""
     npix, k = data.obs.shape[:2]
-    state = _State(y=y, gains=data.gains, weights=wt, value=np.zeros((npix, k, 3)),
+    state = _State(y=y, gains=data.gains, weights=wt,
+                   value=np.zeros((npix, k, 3), dtype=np.float32),
                    chunks=pixel_chunks(npix, k, data.max_lanes))
     total = data.rounds + (1 if data.gain_mode == "fit" else 0)
+    previous = None  # the weights of the last round, when the gains did not move since
     for r in range(total):
         last = r == total - 1
         with_gains = data.gain_mode == "fit" and not last
+        if previous is not None and np.array_equal(previous, state.weights):
+            # same gains, same flags: this round would repeat the last one exactly
+            log(f"round {r + 1}/{total}: observation flags unchanged, round {r} holds")
+            continue
+        previous = None if with_gains else state.weights.copy()
         reduced = np.zeros((k, k)), np.zeros(k)
         # every round starts from the Lambertian start under the current gains: a warm start
         # would keep pixels in the surface-lobe basin the previous gains led them to
@@ -483,7 +628,7 @@ def _result(ev: PixelEvaluator, data: _FitData, layout: list, specs: Mapping[str
         "free": data.free, "gains": data.gain_mode, "max_iterations": data.max_iterations,
         "rounds": data.rounds, "saturation": data.saturation,
         "shadow_ratio": data.shadow_ratio, "shadow_floor": data.shadow_floor,
-        "max_lanes": data.max_lanes, "chunks": len(state.chunks),
+        "max_lanes": data.max_lanes, "chunks": len(state.chunks), "solver": data.solver,
         "correlation_length_max_um": specs["correlation_length"].upper,
         "iterations_last_round": state.iterations, "evaluations": state.evaluations,
         "underdetermined_pixels": int(np.sum(underdetermined)),
@@ -512,7 +657,9 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
              shadow_ratio: float = 0.5, shadow_floor: float = 0.03, variant: str = VARIANT,
              max_lanes: int = MAX_LANES, progress: Callable[[str], None] | None = None,
              light_distance: float | np.ndarray | str = math.inf,
-             gain_model: GainOptions | None = None) -> MapsResult:
+             gain_model: GainOptions | None = None, solver: str = "drjit",
+             gain_pixels: int | None = GAIN_PIXELS, seed: int = 0,
+             memory_gb: float | None = None) -> MapsResult:
     """Fit a normal and powder properties to every pixel of an RTI capture.
 
     Args:
@@ -557,21 +704,53 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
     t0 = time.perf_counter()
     options = {"gains": gains, "max_iterations": max_iterations, "rounds": rounds,
                "saturation": saturation, "shadow_ratio": shadow_ratio,
-               "shadow_floor": shadow_floor, "max_lanes": max_lanes}
+               "shadow_floor": shadow_floor, "max_lanes": max_lanes, "solver": solver}
     gain_model = GainOptions() if gain_model is None else gain_model
     log = _Log(progress)
+    plan = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+                   pixels=False)
+    budget = check_memory(memory_gb)
     scan = None
     if isinstance(light_distance, str):
         if light_distance != "fit":
             raise ValueError(f"light_distance = {light_distance!r} is not valid; give a "
                              "distance in image widths (> the half-diagonal), inf or 'fit'")
-        data = _set_up(images, directions, free, mask, fixed, initial_gains, options)
+        data = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+                       pixels=subsample_mask(plan.mask))
         refit = {"free": free, "fixed": fixed, "gains": gains, "initial_gains": initial_gains,
-                 "variant": variant, "gain_model": gain_model, **options}
+                 "variant": variant, "gain_model": gain_model, "memory_gb": budget, **options}
         light_distance, scan = _fit_distance(images, data, refit, log)
-    data = _set_up(images, directions, free, mask, fixed, initial_gains, options,
-                   light_distance)
-    data.gain_model = gain_model
+    held = _gains_on_subsample(images, plan, gain_pixels, seed, log,
+                               {"free": free, "fixed": fixed, "variant": variant,
+                                "gain_model": gain_model, "light_distance": light_distance,
+                                "memory_gb": budget, **options})
+    options.update(gains=plan.gain_mode, max_lanes=_lanes_within(budget, max_lanes))
+    blocks = _pixel_blocks(plan.mask, len(plan.d), budget, plan.gain_mode == "fit")
+    results = []
+    for i, block in enumerate(blocks):
+        if len(blocks) > 1:
+            log(f"block {i + 1}/{len(blocks)}: {int(block.sum())} pixels")
+        data = _set_up(images, directions, free, mask, fixed, plan.gains, options,
+                       light_distance, pixels=block if len(blocks) > 1 else None)
+        data.gain_model, data.scale = gain_model, plan.scale
+        results.append(_fit_pixels(data, variant, log))
+        del data
+    result = results[0] if len(results) == 1 else _merge_blocks(results, plan.mask)
+    result.fit_settings.update(
+        seconds=time.perf_counter() - t0, stages=log.stages, blocks=len(blocks),
+        memory_gb=budget, peak_memory_mib=peak_memory_mib(),
+        light_distance_source=("fitted" if scan is not None else "distant"
+                               if np.all(np.isinf(light_distance)) else "given"),
+        light_distance_scan=scan)
+    if held is not None:
+        result.fit_settings.update(gains="fit", gain_pixels=held.fit_settings["gain_pixels"],
+                                   gain_stages=held.fit_settings["stages"])
+        result.gain_model = held.gain_model
+    return result
+
+
+def _fit_pixels(data: _FitData, variant: str, log: _Log) -> MapsResult:
+    """The maps of the pixels of ``data``: starts, rounds, result."""
     ev = PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
     layout, specs = _parameter_layout(data)
     starts = PixelStarts(ev, data.obs, data.d, layout, specs, data.free, data.others,
@@ -579,12 +758,31 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
                          data.field)
     y, wt = _initial_start(starts, data, log)
     state = _alternate(ev, starts, data, layout, y, wt, log)
-    result = _result(ev, data, layout, specs, state, variant, log, t0)
-    result.fit_settings["light_distance_source"] = (
-        "fitted" if scan is not None else "distant" if np.all(np.isinf(data.light_distance))
-        else "given")
-    result.fit_settings["light_distance_scan"] = scan
-    return result
+    return _result(ev, data, layout, specs, state, variant, log, time.perf_counter())
+
+
+def _gains_on_subsample(images: np.ndarray, data: _FitData, gain_pixels: int | None,
+                        seed: int, log: _Log, refit: dict) -> MapsResult | None:
+    """With gains fitted and more masked pixels than ``gain_pixels``: fit the maps and gains on
+    a random subsample (:func:`gain_sample`), then hold those gains in ``data`` (mode
+    ``fixed``). Returns the subsample's fit, or None when the gains are fitted on every
+    pixel."""
+    if gain_pixels is not None:
+        gain_pixels = check_count("gain_pixels", gain_pixels, 1)
+    check_count("seed", seed, 0)
+    if data.gain_mode != "fit" or gain_pixels is None or data.mask.sum() <= gain_pixels:
+        return None
+    flat = gain_sample(data.mask, gain_pixels, seed)
+    sub = np.zeros(data.mask.size, dtype=bool)
+    sub[flat] = True
+    part = fit_maps(images, data.d, mask=sub.reshape(data.mask.shape), gains="fit",
+                    initial_gains=data.gains, gain_pixels=None,
+                    **{k: v for k, v in refit.items() if k != "gains"})
+    part.fit_settings["gain_pixels"] = len(flat)
+    data.gain_mode, data.gains = "fixed", part.gains
+    log(f"gains: fitted on {len(flat)} of {int(data.mask.sum())} pixels (seed {seed}), "
+        f"range {np.min(part.gains):.4g}-{np.max(part.gains):.4g}, held for every pixel")
+    return part
 
 
 def fit_light_distance(images: np.ndarray, directions: np.ndarray,
@@ -604,12 +802,14 @@ def fit_light_distance(images: np.ndarray, directions: np.ndarray,
         point; the powder fit's cost per polish evaluation).
     """
     names = ("gains", "max_iterations", "rounds", "saturation", "shadow_ratio",
-             "shadow_floor", "max_lanes")
+             "shadow_floor", "max_lanes", "solver")
     defaults = {"gains": "fit", "max_iterations": 30, "rounds": 3, "saturation": 0.99,
-                "shadow_ratio": 0.5, "shadow_floor": 0.03, "max_lanes": MAX_LANES}
+                "shadow_ratio": 0.5, "shadow_floor": 0.03, "max_lanes": MAX_LANES,
+                "solver": "drjit"}
     checked = {n: options.get(n, defaults[n]) for n in names}
-    data = _set_up(images, directions, options.get("free"), mask, options.get("fixed"),
-                   options.get("initial_gains"), checked)
+    args = (images, directions, options.get("free"), mask, options.get("fixed"),
+            options.get("initial_gains"), checked)
+    data = _set_up(*args, pixels=subsample_mask(_set_up(*args, pixels=False).mask))
     return _fit_distance(images, data, {**defaults, **options}, _Log(progress))
 
 

@@ -51,7 +51,7 @@ from ..outputs import note_inputs, output_path
 from .capture import Capture, lp_image_paths, read_image_window, read_lp, read_mask
 from .checks import check_count, check_gains
 from .cluster import open_client, worker_threads
-from .fit import GAIN_MODES, fit_maps
+from .fit import GAIN_MODES, GAIN_PIXELS, fit_maps, gain_sample
 from .forward import VARIANT
 from .maps import _json_default
 from .result import MapsResult
@@ -61,8 +61,6 @@ __all__ = ["GAIN_PIXELS", "TILE_SIZE_MIN", "TILES_FOLDER", "Tile", "check_gain_p
 
 #: Smallest tile side (pixels)
 TILE_SIZE_MIN = 8
-#: Pixels of the subsample the gains are fitted on
-GAIN_PIXELS = 4096
 #: The folder of tile files under the output folder
 TILES_FOLDER = "tiles"
 #: The gains' file in :data:`TILES_FOLDER`
@@ -276,7 +274,8 @@ def _fit_gains(surveys: list[dict], directions: np.ndarray, options: Mapping,
     """The gains fitted on the sampled pixels (a worker task): ``gains`` (K,), ``stages``."""
     _prepare_worker(options.get("variant", VARIANT))
     images = np.stack([s["samples"] for s in surveys])[:, None]  # (K, 1, N, 3)
-    result = fit_maps(images, directions, gains="fit", initial_gains=initial_gains, **options)
+    result = fit_maps(images, directions, gains="fit", initial_gains=initial_gains,
+                      gain_pixels=None, **options)
     return {"gains": result.gains, "stages": result.fit_settings.get("stages", [])}
 
 
@@ -414,10 +413,7 @@ def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np
                 gains = np.array(f["gains"])
             log(f"gains: read from {path}")
             return gains
-    flat = np.flatnonzero(mask)
-    if len(flat) > plan.gain_pixels:
-        rng = np.random.default_rng(plan.seed)
-        flat = np.sort(rng.choice(flat, plan.gain_pixels, replace=False))
+    flat = gain_sample(mask, plan.gain_pixels, plan.seed)
     options = {**plan.options, "fixed": _sampled_fixed(plan.options.get("fixed"), shape, flat)}
     surveys = [client.submit(_survey, p, plan.encoding, flat, pure=False) for p in plan.paths]
     _check_surveys(client.gather(surveys), plan.names, plan.lp)
