@@ -214,5 +214,6 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     # their tables are on the pages of their features (docs/powder.md, docs/rti.md, docs/fitting.md)
     Benchmark("bench_textures.py", "textures", ("relative to constant", "max relative error")),
     Benchmark("bench_rti_fit.py", "rti_fit", ("fit s", "peak MiB")),
+    Benchmark("bench_rti_tiles.py", "rti_tiles", ("fit s", "peak MiB/worker", "identical")),
     Benchmark("ptfe_reference_fit.py", "ptfe_reference", ("RMSE BRF", "within 1 %")),
 )

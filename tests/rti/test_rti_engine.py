@@ -260,3 +260,30 @@ def test_cuda_fit_maps_matches_llvm(capture):
                         initial_gains=cap["gains"], variant=v)
             for v in ("llvm_ad_rgb", "cuda_ad_rgb")]
     _agree(fits[0], fits[1], cap)
+
+
+def test_blocks_within_a_memory_budget_give_the_same_maps(capture):
+    """With the gains held a pixel's fit depends only on its own observations: a fit in
+    blocks (a tiny memory budget) equals the fit in one block."""
+    cap = capture
+    fixed = {n: cap["maps"][n] for n in HELD}
+    one = rf.fit_maps(cap["images"], cap["directions"], fixed=fixed, gains="fixed",
+                      initial_gains=cap["gains"])
+    lines = []
+    blocks = rf.fit_maps(cap["images"], cap["directions"], fixed=fixed, gains="fixed",
+                         initial_gains=cap["gains"], memory_gb=0.002, progress=lines.append)
+    assert one.fit_settings["blocks"] == 1 and blocks.fit_settings["blocks"] > 2
+    assert sum(line.startswith("block ") for line in lines) == blocks.fit_settings["blocks"]
+    assert blocks.fit_settings["peak_memory_mib"] > 0 and blocks.fit_settings["memory_gb"] == 0.002
+    for name in ("normals", "albedo", "residual_rms"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(one, name), err_msg=name)
+    for name in one.maps:
+        np.testing.assert_array_equal(blocks.maps[name], one.maps[name], err_msg=name)
+    np.testing.assert_array_equal(blocks.used, one.used)
+    assert np.array_equal(blocks.mask, one.mask)
+
+
+def test_memory_budget_is_checked(capture):
+    with pytest.raises(ValueError, match=r"memory_gb = 0 is out of range; valid range is "
+                                         r"\(0, inf\)"):
+        rf.fit_maps(capture["images"], capture["directions"], memory_gb=0)

@@ -343,7 +343,7 @@ def _add_tile_options(p: argparse.ArgumentParser) -> None:
                    "are fitted on, then held for every pixel (>= 1; default 16384)")
     p.add_argument("--memory-gb", type=_checked("fit.check_memory", "--memory-gb"),
                    default=None, metavar="GB", help="working memory of the fit besides the "
-                   "images, GiB (> 0; default an eighth of this machine's, at most 2): pixels "
+                   "images, GiB (> 0; default an eighth of this machine's, at most 1.5): pixels "
                    "are fitted in blocks that fit in it")
     p.add_argument("--solver", choices=("drjit", "numpy"), default="drjit",
                    help="per-pixel solver: drjit (normal equations in Dr.Jit kernels, "

@@ -64,6 +64,8 @@ of the synthetic capture are within 4 % (``tests/rti/test_rti_fit.py``, docs/rti
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import math
 import os
 import resource
@@ -71,9 +73,11 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
+import drjit as dr
 import numpy as np
 
 from ..fitting.optimise import ParamSpec, batch_levenberg_marquardt
+from ..variants import use_variant
 from .checks import check_count, check_directions, check_gains, check_images, check_range
 from .distance import polish_inverse_distance, scan_inverse_distance, subsample_mask
 from .engine import PixelSystem
@@ -112,15 +116,21 @@ GAIN_MODES = ("fit", "fixed")
 GAIN_PIXELS = 16384
 
 #: Largest default working memory of a fit, GiB (:func:`default_memory_gb`)
-MEMORY_GB_MAX = 2.0
+MEMORY_GB_MAX = 1.5
 
-#: Bytes per observation (pixel x light) of a block's NumPy working set (measured with
-#: benchmarks/bench_rti_fit.py: observations and model as float32, weights, flags, starts)
+#: Bytes per observation (pixel x light) of a block's NumPy working set: observations and
+#: model as float32, weights, flags, the starts' temporaries (measured at 1024 x 1024 x 50
+#: lights with benchmarks/bench_rti_fit.py: about 130-160)
 OBSERVATION_BYTES = 200
 
-#: Bytes per lane of a Dr.Jit evaluation of the per-pixel solver (its inputs, the products
-#: of the normal equations, the model's temporaries)
-LANE_BYTES = 320
+#: Bytes per lane of one Dr.Jit evaluation of the per-pixel solver: its inputs, the 36
+#: products of the normal equations and their block sums, the model's temporaries and what
+#: Dr.Jit's allocator keeps (measured: 2^21 lanes take about 0.5 GiB more than 2^20)
+LANE_BYTES = 512
+
+#: Share of the working memory given to Dr.Jit's evaluations (the rest to a block's NumPy
+#: arrays)
+LANE_SHARE = 1.0 / 3.0
 
 #: Per-pixel solvers of :func:`fit_maps`: the Dr.Jit engine (:mod:`mitsuba_powder.rti.engine`)
 #: and the NumPy reference (:func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`)
@@ -165,14 +175,16 @@ def check_memory(memory_gb: float | str | None, name: str = "memory_gb") -> floa
 
 def block_pixels(memory_gb: float, lights: int) -> int:
     """Pixels of a block whose NumPy working set (observations, model, weights, flags and
-    temporaries: :data:`OBSERVATION_BYTES` per pixel and light) takes half of ``memory_gb``."""
-    return max(1, int(memory_gb * 2**30 / 2 / (OBSERVATION_BYTES * max(lights, 1))))
+    temporaries: :data:`OBSERVATION_BYTES` per pixel and light) takes the share of
+    ``memory_gb`` (GiB) that Dr.Jit's evaluations do not (:data:`LANE_SHARE`)."""
+    share = (1.0 - LANE_SHARE) * memory_gb * 2**30
+    return max(1, int(share / (OBSERVATION_BYTES * max(lights, 1))))
 
 
 def _lanes_within(memory_gb: float, max_lanes: int) -> int:
     """``max_lanes`` lowered so that a Dr.Jit evaluation (:data:`LANE_BYTES` a lane) takes at
-    most half of ``memory_gb``."""
-    return max(1, min(int(max_lanes), int(memory_gb * 2**30 / 2 / LANE_BYTES)))
+    most :data:`LANE_SHARE` of ``memory_gb`` (GiB)."""
+    return max(1, min(int(max_lanes), int(LANE_SHARE * memory_gb * 2**30 / LANE_BYTES)))
 
 
 def peak_memory_mib() -> float:
@@ -198,27 +210,30 @@ def _pixel_blocks(mask: np.ndarray, lights: int, memory_gb: float, gains_fitted:
     return blocks
 
 
-def _merge_blocks(results: Sequence[MapsResult], mask: np.ndarray) -> MapsResult:
-    """One result of the blocks' results (each NaN outside its block)."""
-    first = results[0]
-    out = MapsResult(
-        normals=first.normals.copy(), albedo=first.albedo.copy(),
-        maps={n: v.copy() for n, v in first.maps.items()}, settings=first.settings,
-        residual_rms=first.residual_rms.copy(), gains=first.gains, used=first.used.copy(),
-        free=first.free, mask=mask, variant=first.variant,
-        fit_settings=dict(first.fit_settings), light_distance=first.light_distance,
-        gain_model=first.gain_model)
-    for r in results[1:]:
-        sel = r.mask
-        out.normals[sel], out.albedo[sel] = r.normals[sel], r.albedo[sel]
-        out.residual_rms[sel] = r.residual_rms[sel]
-        for name, value in r.maps.items():
-            out.maps[name][sel] = value[sel]
-        out.used[:, sel] = r.used[:, sel]
-        for key in ("evaluations", "chunks", "underdetermined_pixels"):
-            out.fit_settings[key] += r.fit_settings[key]
-        out.fit_settings["iterations_last_round"] = max(
-            out.fit_settings["iterations_last_round"], r.fit_settings["iterations_last_round"])
+def _release(variant: str) -> None:
+    """Free what a block held: its evaluator's plugin instance and arrays (in reference
+    cycles until collected) and Dr.Jit's cache of freed memory."""
+    gc.collect()
+    with use_variant(variant):
+        dr.flush_malloc_cache()
+    try:  # hand the freed heap back to the system (glibc keeps it otherwise)
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _merge_block(out: MapsResult, part: MapsResult) -> MapsResult:
+    """``out`` with the maps of the block fit ``part`` (NaN outside its block) put in."""
+    sel = part.mask
+    out.normals[sel], out.albedo[sel] = part.normals[sel], part.albedo[sel]
+    out.residual_rms[sel] = part.residual_rms[sel]
+    for name, value in part.maps.items():
+        out.maps[name][sel] = value[sel]
+    out.used[:, sel] = part.used[:, sel]
+    for key in ("evaluations", "chunks", "underdetermined_pixels"):
+        out.fit_settings[key] += part.fit_settings[key]
+    out.fit_settings["iterations_last_round"] = max(
+        out.fit_settings["iterations_last_round"], part.fit_settings["iterations_last_round"])
     return out
 
 
@@ -726,16 +741,21 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
                                 "memory_gb": budget, **options})
     options.update(gains=plan.gain_mode, max_lanes=_lanes_within(budget, max_lanes))
     blocks = _pixel_blocks(plan.mask, len(plan.d), budget, plan.gain_mode == "fit")
-    results = []
+    result, ev = None, None
+    medians = {n: float(np.median(property_map(n, v, plan.mask.shape)[plan.mask]))
+               for n, v in plan.fixed.items() if n in MAP_PROPERTIES}
     for i, block in enumerate(blocks):
         if len(blocks) > 1:
             log(f"block {i + 1}/{len(blocks)}: {int(block.sum())} pixels")
         data = _set_up(images, directions, free, mask, fixed, plan.gains, options,
                        light_distance, pixels=block if len(blocks) > 1 else None)
         data.gain_model, data.scale = gain_model, plan.scale
-        results.append(_fit_pixels(data, variant, log))
+        ev = ev or PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
+        part = _fit_pixels(ev, data, variant, log, medians)
         del data
-    result = results[0] if len(results) == 1 else _merge_blocks(results, plan.mask)
+        _release(variant)
+        result = part if result is None else _merge_block(result, part)
+    result.mask = plan.mask
     result.fit_settings.update(
         seconds=time.perf_counter() - t0, stages=log.stages, blocks=len(blocks),
         memory_gb=budget, peak_memory_mib=peak_memory_mib(),
@@ -749,13 +769,14 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
     return result
 
 
-def _fit_pixels(data: _FitData, variant: str, log: _Log) -> MapsResult:
-    """The maps of the pixels of ``data``: starts, rounds, result."""
-    ev = PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
+def _fit_pixels(ev: PixelEvaluator, data: _FitData, variant: str, log: _Log,
+                medians: Mapping[str, float]) -> MapsResult:
+    """The maps of the pixels of ``data`` with the evaluator ``ev``: starts (the held
+    properties at ``medians`` in the albedo table), rounds, result."""
     layout, specs = _parameter_layout(data)
     starts = PixelStarts(ev, data.obs, data.d, layout, specs, data.free, data.others,
                          data.grain_name, data.fixed_maps, data.grain, data.max_lanes,
-                         data.field)
+                         data.field, medians)
     y, wt = _initial_start(starts, data, log)
     state = _alternate(ev, starts, data, layout, y, wt, log)
     return _result(ev, data, layout, specs, state, variant, log, time.perf_counter())

@@ -138,18 +138,23 @@ class PixelStarts:
             None); max_lanes: pixels x lights per evaluation at most.
         field: lights at a finite distance: per-pixel directions (P, K, 3) and irradiance
             factors (P, K) (:func:`mitsuba_powder.rti.forward.near_field`); None: distant.
+        medians: the values of the held per-pixel properties in the albedo table (default
+            their medians over these pixels; a fit in blocks gives those of all its pixels,
+            so that every block starts alike).
     """
 
     def __init__(self, ev: PixelEvaluator, obs: np.ndarray, directions: np.ndarray,
                  layout: Sequence[tuple[str, ParamSpec]], specs: Mapping[str, ParamSpec],
                  free: Sequence[str], others: Sequence[str], grain_name: str,
                  fixed_maps: Mapping[str, np.ndarray], grain: GrainAlbedo | None,
-                 max_lanes: int, field: tuple[np.ndarray, np.ndarray] | None = None):
+                 max_lanes: int, field: tuple[np.ndarray, np.ndarray] | None = None,
+                 medians: Mapping[str, float] | None = None):
         self.ev, self.obs, self.d, self.field = ev, obs, directions, field
         self.layout, self.specs, self.others = layout, specs, list(others)
         self.grain_name, self.fixed_maps, self.max_lanes = grain_name, fixed_maps, max_lanes
-        table_values = {**{n: SPECS[n].start for n in others},
-                        **{n: float(np.median(v)) for n, v in fixed_maps.items()}}
+        if medians is None:
+            medians = {n: float(np.median(v)) for n, v in fixed_maps.items()}
+        table_values = {**{n: SPECS[n].start for n in others}, **medians}
         self.table = (_albedo_table(ev, table_values, directions)
                       if "albedo" in free or grain_name in free else None)
         self.size_grid = (np.exp(np.linspace(math.log(SPECS[grain_name].lower),
