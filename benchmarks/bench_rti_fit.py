@@ -12,7 +12,12 @@ free set, per-light gains fitted, ``llvm_ad_rgb`` (or ``--variant``). Two config
   it was before the Dr.Jit engine. Run where it finishes in reasonable time (``--numpy-max``
   pixels, default 256 x 256).
 
-Prints a table and writes ``benchmarks/results/rti_fit.json`` and ``rti_fit.png``.
+A second table times the batched damped solve of the per-pixel systems, 10^5 of them (2000
+with ``--quick``) with 7 and 10 variables: NumPy's ``linalg.solve`` (the reference solver's
+``optimise._solve_damped``) against the Dr.Jit engine's unrolled Cholesky factorisation
+(``engine._damped_step``), best of three, and their largest relative difference.
+
+Prints the tables and writes ``benchmarks/results/rti_fit.json`` and ``rti_fit.png``.
 
     python benchmarks/bench_rti_fit.py [--quick] [--full] [--variant cuda_ad_rgb]
 
@@ -68,6 +73,45 @@ def _fit(path: Path, config: str, variant: str) -> dict:
             "normal_error_median_deg": float(np.median(err)),
             "residual_rms_over_noise": float(np.sqrt(np.nanmean(res.residual_rms**2)) / NOISE),
             "gain_error_max": float(np.max(np.abs(res.gains / gains - 1)))}
+
+
+def solve_timings(systems: int) -> list[dict]:
+    """Best-of-three times (ms) of ``systems`` damped solves, NumPy against Dr.Jit."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mitsuba_powder.fitting.optimise import _solve_damped
+    from mitsuba_powder.rti.engine import _damped_step
+    from mitsuba_powder.variants import use_variant
+
+    rows = []
+    rng = np.random.default_rng(0)
+    for n in (7, 10):
+        m = rng.normal(size=(systems, 3 * n, n))
+        a = np.einsum("pki,pkj->pij", m, m)
+        g = rng.normal(size=(systems, n))
+        lam = np.full(systems, 1e-3)
+        times = {"numpy": [], "drjit": []}
+        with use_variant("llvm_ad_rgb"):
+            tri = [mi.Float64(np.ascontiguousarray(a[:, i, j])) for i in range(n)
+                   for j in range(i + 1)]
+            rhs = [mi.Float64(np.ascontiguousarray(g[:, i])) for i in range(n)]
+            damping = mi.Float64(lam)
+            dr.eval(tri, rhs, damping)
+            for _ in range(3):
+                t0 = time.perf_counter()
+                ref = _solve_damped(a, g, lam, np.ones(n, dtype=bool))
+                times["numpy"].append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                step = _damped_step(tri, rhs, damping)
+                dr.eval(step)
+                times["drjit"].append(time.perf_counter() - t0)
+            got = np.stack([np.array(v) for v in step], axis=1)
+        rows.append({"systems": systems, "variables": n,
+                     "numpy_ms": 1e3 * min(times["numpy"]), "drjit_ms": 1e3 * min(times["drjit"]),
+                     "max_relative_difference": float(np.max(np.abs(got - ref))
+                                                      / np.max(np.abs(ref)))})
+    return rows
 
 
 def _child(args: list[str]) -> dict:
@@ -138,9 +182,14 @@ def main() -> None:
                       f"{row['normal_error_median_deg']:9.3f}d "
                       f"{row['residual_rms_over_noise']:9.3f}", flush=True)
             path.unlink()
+    solve = solve_timings(2000 if args.quick else 100_000)
+    print(f"\n{'systems':>8} {'variables':>9} {'numpy ms':>9} {'drjit ms':>9} {'max rel diff':>12}")
+    for r in solve:
+        print(f"{r['systems']:8d} {r['variables']:9d} {r['numpy_ms']:9.1f} {r['drjit_ms']:9.1f} "
+              f"{r['max_relative_difference']:12.1e}")
     args.out.mkdir(parents=True, exist_ok=True)
     meta = {"quick": args.quick, "cpu": platform.processor() or platform.machine(),
-            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
+            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d"), "solve": solve}
     out = args.out / "rti_fit.json"
     out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     _figure(args.out / "rti_fit.png", rows)

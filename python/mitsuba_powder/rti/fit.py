@@ -85,6 +85,7 @@ from .forward import (
     MAX_LANES,
     VARIANT,
     PixelEvaluator,
+    check_rgb_variant,
     near_field,
     normals_of_slopes,
     pixel_chunks,
@@ -717,56 +718,59 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         A :class:`~mitsuba_powder.rti.result.MapsResult`.
     """
     t0 = time.perf_counter()
-    options = {"gains": gains, "max_iterations": max_iterations, "rounds": rounds,
-               "saturation": saturation, "shadow_ratio": shadow_ratio,
-               "shadow_floor": shadow_floor, "max_lanes": max_lanes, "solver": solver}
-    gain_model = GainOptions() if gain_model is None else gain_model
-    log = _Log(progress)
-    plan = _set_up(images, directions, free, mask, fixed, initial_gains, options,
-                   pixels=False)
-    budget = check_memory(memory_gb)
-    scan = None
-    if isinstance(light_distance, str):
-        if light_distance != "fit":
-            raise ValueError(f"light_distance = {light_distance!r} is not valid; give a "
-                             "distance in image widths (> the half-diagonal), inf or 'fit'")
-        data = _set_up(images, directions, free, mask, fixed, initial_gains, options,
-                       pixels=subsample_mask(plan.mask))
-        refit = {"free": free, "fixed": fixed, "gains": gains, "initial_gains": initial_gains,
-                 "variant": variant, "gain_model": gain_model, "memory_gb": budget, **options}
-        light_distance, scan = _fit_distance(images, data, refit, log)
-    held = _gains_on_subsample(images, plan, gain_pixels, seed, log,
-                               {"free": free, "fixed": fixed, "variant": variant,
-                                "gain_model": gain_model, "light_distance": light_distance,
-                                "memory_gb": budget, **options})
-    options.update(gains=plan.gain_mode, max_lanes=_lanes_within(budget, max_lanes))
-    blocks = _pixel_blocks(plan.mask, len(plan.d), budget, plan.gain_mode == "fit")
-    result, ev = None, None
-    medians = {n: float(np.median(property_map(n, v, plan.mask.shape)[plan.mask]))
-               for n, v in plan.fixed.items() if n in MAP_PROPERTIES}
-    for i, block in enumerate(blocks):
-        if len(blocks) > 1:
-            log(f"block {i + 1}/{len(blocks)}: {int(block.sum())} pixels")
-        data = _set_up(images, directions, free, mask, fixed, plan.gains, options,
-                       light_distance, pixels=block if len(blocks) > 1 else None)
-        data.gain_model, data.scale = gain_model, plan.scale
-        ev = ev or PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
-        part = _fit_pixels(ev, data, variant, log, medians)
-        del data
-        _release(variant)
-        result = part if result is None else _merge_block(result, part)
-    result.mask = plan.mask
-    result.fit_settings.update(
-        seconds=time.perf_counter() - t0, stages=log.stages, blocks=len(blocks),
-        memory_gb=budget, peak_memory_mib=peak_memory_mib(),
-        light_distance_source=("fitted" if scan is not None else "distant"
-                               if np.all(np.isinf(light_distance)) else "given"),
-        light_distance_scan=scan)
-    if held is not None:
-        result.fit_settings.update(gains="fit", gain_pixels=held.fit_settings["gain_pixels"],
-                                   gain_stages=held.fit_settings["stages"])
-        result.gain_model = held.gain_model
-    return result
+    # one variant for the whole fit: nested blocks then switch nothing (a switch re-registers
+    # the plugin and Mitsuba reloads its Python integrators, 0.1-0.5 s each)
+    with use_variant(check_rgb_variant(variant)):
+        options = {"gains": gains, "max_iterations": max_iterations, "rounds": rounds,
+                   "saturation": saturation, "shadow_ratio": shadow_ratio,
+                   "shadow_floor": shadow_floor, "max_lanes": max_lanes, "solver": solver}
+        gain_model = GainOptions() if gain_model is None else gain_model
+        log = _Log(progress)
+        plan = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+                       pixels=False)
+        budget = check_memory(memory_gb)
+        scan = None
+        if isinstance(light_distance, str):
+            if light_distance != "fit":
+                raise ValueError(f"light_distance = {light_distance!r} is not valid; give a "
+                                 "distance in image widths (> the half-diagonal), inf or 'fit'")
+            data = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+                           pixels=subsample_mask(plan.mask))
+            refit = {"free": free, "fixed": fixed, "gains": gains, "initial_gains": initial_gains,
+                     "variant": variant, "gain_model": gain_model, "memory_gb": budget, **options}
+            light_distance, scan = _fit_distance(images, data, refit, log)
+        held = _gains_on_subsample(images, plan, gain_pixels, seed, log,
+                                   {"free": free, "fixed": fixed, "variant": variant,
+                                    "gain_model": gain_model, "light_distance": light_distance,
+                                    "memory_gb": budget, **options})
+        options.update(gains=plan.gain_mode, max_lanes=_lanes_within(budget, max_lanes))
+        blocks = _pixel_blocks(plan.mask, len(plan.d), budget, plan.gain_mode == "fit")
+        result, ev = None, None
+        medians = {n: float(np.median(property_map(n, v, plan.mask.shape)[plan.mask]))
+                   for n, v in plan.fixed.items() if n in MAP_PROPERTIES}
+        for i, block in enumerate(blocks):
+            if len(blocks) > 1:
+                log(f"block {i + 1}/{len(blocks)}: {int(block.sum())} pixels")
+            data = _set_up(images, directions, free, mask, fixed, plan.gains, options,
+                           light_distance, pixels=block if len(blocks) > 1 else None)
+            data.gain_model, data.scale = gain_model, plan.scale
+            ev = ev or PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
+            part = _fit_pixels(ev, data, variant, log, medians)
+            del data
+            _release(variant)
+            result = part if result is None else _merge_block(result, part)
+        result.mask = plan.mask
+        result.fit_settings.update(
+            seconds=time.perf_counter() - t0, stages=log.stages, blocks=len(blocks),
+            memory_gb=budget, peak_memory_mib=peak_memory_mib(),
+            light_distance_source=("fitted" if scan is not None else "distant"
+                                   if np.all(np.isinf(light_distance)) else "given"),
+            light_distance_scan=scan)
+        if held is not None:
+            result.fit_settings.update(gains="fit", gain_pixels=held.fit_settings["gain_pixels"],
+                                       gain_stages=held.fit_settings["stages"])
+            result.gain_model = held.gain_model
+        return result
 
 
 def _fit_pixels(ev: PixelEvaluator, data: _FitData, variant: str, log: _Log,

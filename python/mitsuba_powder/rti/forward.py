@@ -55,8 +55,8 @@ from .properties import (
     property_map,
 )
 
-__all__ = ["MAX_LANES", "PixelEvaluator", "VARIANT", "near_field", "normals_of_slopes",
-           "pixel_chunks", "render_capture", "slopes_of_normals"]
+__all__ = ["MAX_LANES", "PixelEvaluator", "VARIANT", "check_rgb_variant", "near_field",
+           "normals_of_slopes", "pixel_chunks", "render_capture", "slopes_of_normals"]
 
 #: Default limit of pixels x lights per plugin evaluation (bounds memory: the float64
 #: Jacobian of a chunk takes 24 x lanes x variables bytes)
@@ -64,6 +64,14 @@ MAX_LANES = 1 << 21
 
 #: The default Mitsuba variant of the RTI fit (an RGB variant with AD)
 VARIANT = "llvm_ad_rgb"
+
+
+def check_rgb_variant(variant: str) -> str:
+    """``variant`` if it is an RGB variant's name (RTI maps have three channels)."""
+    if not isinstance(variant, str) or "rgb" not in variant:
+        raise ValueError(f"variant = {variant!r}: RTI maps need an RGB variant (e.g. "
+                         "llvm_ad_rgb or cuda_ad_rgb)")
+    return variant
 
 
 class PixelEvaluator:
@@ -77,9 +85,7 @@ class PixelEvaluator:
     """
 
     def __init__(self, varying: Sequence[str], settings: Mapping, variant: str):
-        if "rgb" not in variant:
-            raise ValueError(f"variant = {variant!r}: RTI maps need an RGB variant (e.g. "
-                             "llvm_ad_rgb or cuda_ad_rgb)")
+        check_rgb_variant(variant)
         if settings.get("energy", "paper") != "paper":
             raise ValueError(f"energy = {settings['energy']!r}: per-pixel maps need energy = "
                              "'paper' (the only valid value here: 'conserving' tabulates its "

@@ -1,0 +1,89 @@
+"""How much of the per-light gains' trend in elevation a near-field light model explains.
+
+Fits the powder maps of a capture (``fit_maps`` defaults, gains fitted) twice, with distant
+lights and with the lights at ``--light-distance`` image widths, and compares the fitted gains:
+their spread (standard deviation of ``ln g``), the slope of ``ln g`` against ``sin(elevation)``
+(least squares over the lights), and the mean gain per elevation ring. The near-field share of
+the trend is ``1 - slope(near) / slope(far)``. Prints Markdown tables.
+
+    python docs/scripts/rti_gain_trend.py CAPTURE.lp --light-distance 13.69 \
+        [--encoding linear] [--rings 4] [--json OUT.json]
+
+The capture's images are read from the paths its ``.lp`` file names (not in this repository
+for RealRTI: see docs/rti.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from mitsuba_powder import rti as rf
+
+
+def trend(directions: np.ndarray, gains: np.ndarray) -> dict:
+    """Spread of ``ln g`` and its least-squares slope (per unit of sin(elevation))."""
+    lz = directions[:, 2] / np.linalg.norm(directions, axis=1)
+    lng = np.log(gains)
+    slope, intercept = np.polyfit(lz, lng, 1)
+    return {"spread": float(np.std(lng)), "slope": float(slope),
+            "intercept": float(intercept)}
+
+
+def rings(directions: np.ndarray, gains: dict[str, np.ndarray], count: int) -> list[dict]:
+    """Mean gain per elevation ring (quantiles of the lights' elevations) for each fit."""
+    elev = np.degrees(np.arcsin(np.clip(directions[:, 2] / np.linalg.norm(directions, axis=1),
+                                        -1.0, 1.0)))
+    edges = np.quantile(elev, np.linspace(0.0, 1.0, count + 1))
+    rows = []
+    for i in range(count):
+        sel = (elev >= edges[i]) & ((elev <= edges[i + 1]) if i == count - 1
+                                    else (elev < edges[i + 1]))
+        rows.append({"elevation": [float(elev[sel].min()), float(elev[sel].max())],
+                     "lights": int(sel.sum()),
+                     **{name: float(np.mean(g[sel])) for name, g in gains.items()}})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("lp", type=Path)
+    ap.add_argument("--light-distance", type=float, required=True,
+                    help="r of the near-field fit, image widths")
+    ap.add_argument("--encoding", default="linear", choices=("linear", "srgb"))
+    ap.add_argument("--rings", type=int, default=4)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    cap = rf.load_capture(args.lp, encoding=args.encoding)
+    gains, seconds = {}, {}
+    for name, r in (("far", math.inf), ("near", args.light_distance)):
+        res = rf.fit_maps(cap.images, cap.directions, mask=cap.mask, light_distance=r)
+        gains[name], seconds[name] = res.gains, res.fit_settings["seconds"]
+    stats = {n: trend(cap.directions, g) for n, g in gains.items()}
+    share = 1.0 - stats["near"]["slope"] / stats["far"]["slope"]
+    print(f"{args.lp}: {len(cap.directions)} lights, r = {args.light_distance:g} image widths")
+    print("\n| lights | spread of ln g | slope of ln g per sin(elevation) | fit s |")
+    print("|---|---:|---:|---:|")
+    for n in gains:
+        print(f"| {n} | {stats[n]['spread']:.4f} | {stats[n]['slope']:+.4f} | "
+              f"{seconds[n]:.0f} |")
+    print(f"\nnear-field share of the slope: {share:.1%}")
+    table = rings(cap.directions, gains, args.rings)
+    print("\n| elevation (deg) | lights | mean gain, far | mean gain, near |")
+    print("|---|---:|---:|---:|")
+    for row in table:
+        lo, hi = row["elevation"]
+        print(f"| {lo:.0f}-{hi:.0f} | {row['lights']} | {row['far']:.3f} | {row['near']:.3f} |")
+    if args.json:
+        args.json.write_text(json.dumps({
+            "lp": str(args.lp), "light_distance": args.light_distance, "trend": stats,
+            "near_share_of_slope": share, "rings": table, "seconds": seconds,
+            "gains": {n: g.tolist() for n, g in gains.items()}}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
