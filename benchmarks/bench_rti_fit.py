@@ -105,6 +105,7 @@ def solve_timings(systems: int) -> list[dict]:
                 t0 = time.perf_counter()
                 step = _damped_step(tri, rhs, damping)
                 dr.eval(step)
+                dr.sync_thread()  # (launches are asynchronous)
                 times["drjit"].append(time.perf_counter() - t0)
             got = np.stack([np.array(v) for v in step], axis=1)
         rows.append({"systems": systems, "variables": n,
@@ -112,6 +113,26 @@ def solve_timings(systems: int) -> list[dict]:
                      "max_relative_difference": float(np.max(np.abs(got - ref))
                                                       / np.max(np.abs(ref)))})
     return rows
+
+
+def _print_solve(rows: list[dict]) -> list[dict]:
+    """Print the damped-solve table; return its rows."""
+    print(f"\n{'systems':>8} {'variables':>9} {'numpy ms':>9} {'drjit ms':>9} {'max rel diff':>12}")
+    for r in rows:
+        print(f"{r['systems']:8d} {r['variables']:9d} {r['numpy_ms']:9.1f} {r['drjit_ms']:9.1f} "
+              f"{r['max_relative_difference']:12.1e}")
+    return rows
+
+
+def _solve_table(out: Path, quick: bool) -> None:
+    """Time the damped solves and put them into ``out/rti_fit.json`` (created if absent)."""
+    solve = _print_solve(solve_timings(2000 if quick else 100_000))
+    path = out / "rti_fit.json"
+    data = json.loads(path.read_text()) if path.exists() else {"meta": {}, "rows": []}
+    data["meta"]["solve"] = solve
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+    print(f"wrote {path}")
 
 
 def _child(args: list[str]) -> dict:
@@ -162,7 +183,12 @@ def main() -> None:
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--numpy-max", type=int, default=256 * 256,
                     help="pixels up to which the NumPy reference runs too")
+    ap.add_argument("--solve-only", action="store_true",
+                    help="only time the damped solves, updating rti_fit.json in --out")
     args = ap.parse_args()
+    if args.solve_only:
+        _solve_table(args.out, args.quick)
+        return
     rows = []
     print(f"{'capture':>18} {'config':>6} {'fit s':>8} {'peak MiB':>9} {'blocks':>6} "
           f"{'normal err':>10} {'rms/noise':>9}", flush=True)
@@ -182,11 +208,7 @@ def main() -> None:
                       f"{row['normal_error_median_deg']:9.3f}d "
                       f"{row['residual_rms_over_noise']:9.3f}", flush=True)
             path.unlink()
-    solve = solve_timings(2000 if args.quick else 100_000)
-    print(f"\n{'systems':>8} {'variables':>9} {'numpy ms':>9} {'drjit ms':>9} {'max rel diff':>12}")
-    for r in solve:
-        print(f"{r['systems']:8d} {r['variables']:9d} {r['numpy_ms']:9.1f} {r['drjit_ms']:9.1f} "
-              f"{r['max_relative_difference']:12.1e}")
+    solve = _print_solve(solve_timings(2000 if args.quick else 100_000))
     args.out.mkdir(parents=True, exist_ok=True)
     meta = {"quick": args.quick, "cpu": platform.processor() or platform.machine(),
             "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d"), "solve": solve}

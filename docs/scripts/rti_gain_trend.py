@@ -25,13 +25,16 @@ import numpy as np
 from mitsuba_powder import rti as rf
 
 
-def trend(directions: np.ndarray, gains: np.ndarray) -> dict:
-    """Spread of ``ln g`` and its least-squares slope (per unit of sin(elevation))."""
+def trend(directions: np.ndarray, gains: np.ndarray, min_elevation: float) -> dict:
+    """Spread of ``ln g`` and its least-squares slope (per unit of sin(elevation)), over all
+    lights and over those above ``min_elevation`` degrees (where cast shadows, which the gains
+    of the lowest lights absorb, matter less)."""
     lz = directions[:, 2] / np.linalg.norm(directions, axis=1)
     lng = np.log(gains)
-    slope, intercept = np.polyfit(lz, lng, 1)
-    return {"spread": float(np.std(lng)), "slope": float(slope),
-            "intercept": float(intercept)}
+    high = lz > np.sin(np.radians(min_elevation))
+    return {"spread": float(np.std(lng)), "slope": float(np.polyfit(lz, lng, 1)[0]),
+            "spread_high": float(np.std(lng[high])),
+            "slope_high": float(np.polyfit(lz[high], lng[high], 1)[0])}
 
 
 def rings(directions: np.ndarray, gains: dict[str, np.ndarray], count: int) -> list[dict]:
@@ -56,6 +59,8 @@ def main() -> None:
                     help="r of the near-field fit, image widths")
     ap.add_argument("--encoding", default="linear", choices=("linear", "srgb"))
     ap.add_argument("--rings", type=int, default=4)
+    ap.add_argument("--min-elevation", type=float, default=15.0,
+                    help="degrees: the second slope is over the lights above it")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     cap = rf.load_capture(args.lp, encoding=args.encoding)
@@ -63,15 +68,19 @@ def main() -> None:
     for name, r in (("far", math.inf), ("near", args.light_distance)):
         res = rf.fit_maps(cap.images, cap.directions, mask=cap.mask, light_distance=r)
         gains[name], seconds[name] = res.gains, res.fit_settings["seconds"]
-    stats = {n: trend(cap.directions, g) for n, g in gains.items()}
-    share = 1.0 - stats["near"]["slope"] / stats["far"]["slope"]
+    stats = {n: trend(cap.directions, g, args.min_elevation) for n, g in gains.items()}
+    share = {k: 1.0 - stats["near"][k] / stats["far"][k] for k in ("slope", "slope_high")}
+    high = f"above {args.min_elevation:g} deg"
     print(f"{args.lp}: {len(cap.directions)} lights, r = {args.light_distance:g} image widths")
-    print("\n| lights | spread of ln g | slope of ln g per sin(elevation) | fit s |")
-    print("|---|---:|---:|---:|")
+    print(f"\n| lights | spread of ln g | slope of ln g per sin(elevation) | spread, {high} | "
+          f"slope, {high} | fit s |")
+    print("|---|---:|---:|---:|---:|---:|")
     for n in gains:
-        print(f"| {n} | {stats[n]['spread']:.4f} | {stats[n]['slope']:+.4f} | "
-              f"{seconds[n]:.0f} |")
-    print(f"\nnear-field share of the slope: {share:.1%}")
+        st = stats[n]
+        print(f"| {n} | {st['spread']:.4f} | {st['slope']:+.4f} | {st['spread_high']:.4f} | "
+              f"{st['slope_high']:+.4f} | {seconds[n]:.0f} |")
+    print(f"\nnear-field share of the slope: {share['slope']:.1%} (all lights), "
+          f"{share['slope_high']:.1%} ({high})")
     table = rings(cap.directions, gains, args.rings)
     print("\n| elevation (deg) | lights | mean gain, far | mean gain, near |")
     print("|---|---:|---:|---:|")

@@ -341,7 +341,7 @@ def _add_tile_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gain-pixels", type=_checked("tiles.check_gain_pixels", "--gain-pixels"),
                    default=None, metavar="N", help="pixels of the whole capture the gains "
                    "are fitted on, then held for every pixel (>= 1; default 16384)")
-    p.add_argument("--memory-gb", type=_checked("fit.check_memory", "--memory-gb"),
+    p.add_argument("--memory-gb", type=_checked("blocks.check_memory", "--memory-gb"),
                    default=None, metavar="GB", help="working memory of the fit besides the "
                    "images, GiB (> 0; default an eighth of this machine's, at most 1.5): pixels "
                    "are fitted in blocks that fit in it")

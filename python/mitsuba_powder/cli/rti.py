@@ -64,7 +64,7 @@ def _light_distance(args: argparse.Namespace, capture) -> tuple[object, str]:
 
 def _cmd_fit_maps(args: argparse.Namespace) -> int:
     from ..rti import fit_maps, load_capture
-    from ..rti.fit import GAIN_PIXELS
+    from ..rti.blocks import GAIN_PIXELS
     from ..rti.gains import GainOptions
     from ..rti.maps import write_maps
 

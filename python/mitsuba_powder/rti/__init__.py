@@ -9,6 +9,9 @@ Modules, one job each:
 * :mod:`~mitsuba_powder.rti.starts`: Lambertian photometric stereo and the grain-size search;
 * :mod:`~mitsuba_powder.rti.problem`: the least-squares problems of pixels and light gains;
 * :mod:`~mitsuba_powder.rti.engine`: the per-pixel solver inside Dr.Jit kernels;
+* :mod:`~mitsuba_powder.rti.inputs`: the checked inputs of a fit;
+* :mod:`~mitsuba_powder.rti.blocks`: gains on a pixel subsample, pixels in blocks within a
+  memory budget;
 * :mod:`~mitsuba_powder.rti.fit`: :func:`fit_maps` and what a dome of lights determines;
 * :mod:`~mitsuba_powder.rti.result`: :class:`MapsResult` and :func:`relight`;
 * :mod:`~mitsuba_powder.rti.tiles`: :func:`~mitsuba_powder.rti.tiles.fit_maps_tiled`, the fit

@@ -68,6 +68,11 @@ class EngineResult:
     evaluations: int
 
 
+def _f32(a: np.ndarray):
+    """A NumPy array as a flat ``mi.Float`` (C order), in the selected variant."""
+    return mi.Float(np.ascontiguousarray(a, dtype=np.float32).ravel())
+
+
 def _tri(i: int, j: int) -> int:
     """Index of (i, j), i >= j, in a row-major lower triangle."""
     return i * (i + 1) // 2 + j
@@ -174,20 +179,19 @@ class PixelSystem:
         self.upper = np.array([s.to_y(s.upper) for _, s in layout], dtype=np.float64)
         self.evaluations = 0
         with use_variant(ev.variant):
-            f32 = lambda a: mi.Float(np.ascontiguousarray(a, dtype=np.float32).ravel())  # noqa: E731
-            self.obs = [f32(observed[:, :, c]) for c in range(3)]
-            self.sqrt_w = f32(np.sqrt(weights))
-            self.gains = f32(gains)
-            self.irradiance = None if irradiance is None else f32(irradiance)
+            self.obs = [_f32(observed[:, :, c]) for c in range(3)]
+            self.sqrt_w = _f32(np.sqrt(weights))
+            self.gains = _f32(gains)
+            self.irradiance = None if irradiance is None else _f32(irradiance)
             if directions.ndim == 2:
-                self.table = [f32(directions[:, c]) for c in range(3)]
+                self.table = [_f32(directions[:, c]) for c in range(3)]
                 self.per_pixel_dirs = None
             else:
                 self.table = None
-                self.per_pixel_dirs = [f32(directions[:, :, c]) for c in range(3)]
-            self.fixed = {n: f32(v) for n, v in fixed.items()}
+                self.per_pixel_dirs = [_f32(directions[:, :, c]) for c in range(3)]
+            self.fixed = {n: _f32(v) for n, v in fixed.items()}
             self.fixed_albedo = (None if fixed_albedo is None else
-                                 [f32(fixed_albedo[:, c]) for c in range(3)])
+                                 [_f32(fixed_albedo[:, c]) for c in range(3)])
             self.grain = None if grain is None else _GrainTable(grain)
         self._passes = self._tangent_passes()
 

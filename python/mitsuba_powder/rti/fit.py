@@ -64,21 +64,26 @@ of the synthetic capture are within 4 % (``tests/rti/test_rti_fit.py``, docs/rti
 
 from __future__ import annotations
 
-import ctypes
-import gc
 import math
-import os
-import resource
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-import drjit as dr
 import numpy as np
 
 from ..fitting.optimise import ParamSpec, batch_levenberg_marquardt
 from ..variants import use_variant
-from .checks import check_count, check_directions, check_gains, check_images, check_range
+from .blocks import (
+    GAIN_PIXELS,
+    check_memory,
+    gain_sample,
+    lanes_within,
+    merge_block,
+    peak_memory_mib,
+    pixel_blocks,
+    release,
+)
+from .checks import check_count
 from .distance import polish_inverse_distance, scan_inverse_distance, subsample_mask
 from .engine import PixelSystem
 from .forward import (
@@ -86,56 +91,23 @@ from .forward import (
     VARIANT,
     PixelEvaluator,
     check_rgb_variant,
-    near_field,
     normals_of_slopes,
     pixel_chunks,
 )
 from .gains import GainOptions
+from .inputs import GAIN_MODES, SOLVERS, FitData, set_up
 from .problem import PixelProblem, gain_step, gain_system
 from .properties import (
-    FREE_PROPERTIES,
-    GRAIN_MAPS,
-    MAP_DEFAULT_FREE,
     MAP_PROPERTIES,
     SLOPE_LIMIT,
     SPECS,
-    GrainAlbedo,
-    grain_map_name,
     property_map,
 )
 from .result import MapsResult
 from .starts import PixelStarts
 
-__all__ = ["GAIN_MODES", "GAIN_PIXELS", "MEMORY_GB_MAX", "SOLVERS", "block_pixels",
-           "check_memory", "default_memory_gb", "fit_light_distance", "fit_maps",
-           "gain_sample", "max_correlation_length", "peak_memory_mib"]
-
-#: Gain modes of :func:`fit_maps`
-GAIN_MODES = ("fit", "fixed")
-
-#: Pixels of the subsample the per-light gains are fitted on (then held for every pixel)
-GAIN_PIXELS = 16384
-
-#: Largest default working memory of a fit, GiB (:func:`default_memory_gb`)
-MEMORY_GB_MAX = 1.5
-
-#: Bytes per observation (pixel x light) of a block's NumPy working set: observations and
-#: model as float32, weights, flags, the starts' temporaries (measured at 1024 x 1024 x 50
-#: lights with benchmarks/bench_rti_fit.py: about 130-160)
-OBSERVATION_BYTES = 200
-
-#: Bytes per lane of one Dr.Jit evaluation of the per-pixel solver: its inputs, the 36
-#: products of the normal equations and their block sums, the model's temporaries and what
-#: Dr.Jit's allocator keeps (measured: 2^21 lanes take about 0.5 GiB more than 2^20)
-LANE_BYTES = 512
-
-#: Share of the working memory given to Dr.Jit's evaluations (the rest to a block's NumPy
-#: arrays)
-LANE_SHARE = 1.0 / 3.0
-
-#: Per-pixel solvers of :func:`fit_maps`: the Dr.Jit engine (:mod:`mitsuba_powder.rti.engine`)
-#: and the NumPy reference (:func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`)
-SOLVERS = ("drjit", "numpy")
+__all__ = ["GAIN_MODES", "GAIN_PIXELS", "SOLVERS", "fit_light_distance", "fit_maps",
+           "max_correlation_length"]
 
 
 def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) -> float:
@@ -157,290 +129,11 @@ def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) ->
     return float(wavelength * 1e-3 / (math.pi * max(spacing, 1e-6) / 2))
 
 
-def default_memory_gb() -> float:
-    """The default working memory of a fit, GiB: an eighth of this machine's memory, at most
-    :data:`MEMORY_GB_MAX`."""
-    try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    except (ValueError, OSError, AttributeError):
-        return MEMORY_GB_MAX
-    return float(min(MEMORY_GB_MAX, max(total / 8.0, 0.25)))
-
-
-def check_memory(memory_gb: float | str | None, name: str = "memory_gb") -> float:
-    """``memory_gb`` (GiB) checked (> 0, finite), or the default (None)."""
-    if memory_gb is None:
-        return default_memory_gb()
-    return check_range(name, memory_gb, 0.0, math.inf, open_lower=True, open_upper=True)
-
-
-def block_pixels(memory_gb: float, lights: int) -> int:
-    """Pixels of a block whose NumPy working set (observations, model, weights, flags and
-    temporaries: :data:`OBSERVATION_BYTES` per pixel and light) takes the share of
-    ``memory_gb`` (GiB) that Dr.Jit's evaluations do not (:data:`LANE_SHARE`)."""
-    share = (1.0 - LANE_SHARE) * memory_gb * 2**30
-    return max(1, int(share / (OBSERVATION_BYTES * max(lights, 1))))
-
-
-def _lanes_within(memory_gb: float, max_lanes: int) -> int:
-    """``max_lanes`` lowered so that a Dr.Jit evaluation (:data:`LANE_BYTES` a lane) takes at
-    most :data:`LANE_SHARE` of ``memory_gb`` (GiB)."""
-    return max(1, min(int(max_lanes), int(LANE_SHARE * memory_gb * 2**30 / LANE_BYTES)))
-
-
-def peak_memory_mib() -> float:
-    """This process's peak resident memory so far, MiB (Linux ``ru_maxrss``, KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _pixel_blocks(mask: np.ndarray, lights: int, memory_gb: float, gains_fitted: bool
-                  ) -> list[np.ndarray]:
-    """The masked pixels in blocks of at most :func:`block_pixels` (bands of the image in
-    row-major order), bool (H, W) each; one block when the gains are fitted with the maps
-    (they couple every pixel)."""
-    flat = np.flatnonzero(mask)
-    size = block_pixels(memory_gb, lights)
-    if gains_fitted or len(flat) <= size:
-        return [mask]
-    count = math.ceil(len(flat) / size)
-    blocks = []
-    for part in np.array_split(flat, count):
-        block = np.zeros(mask.size, dtype=bool)
-        block[part] = True
-        blocks.append(block.reshape(mask.shape))
-    return blocks
-
-
-def _release(variant: str) -> None:
-    """Free what a block held: its evaluator's plugin instance and arrays (in reference
-    cycles until collected) and Dr.Jit's cache of freed memory."""
-    gc.collect()
-    with use_variant(variant):
-        dr.flush_malloc_cache()
-    try:  # hand the freed heap back to the system (glibc keeps it otherwise)
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-def _merge_block(out: MapsResult, part: MapsResult) -> MapsResult:
-    """``out`` with the maps of the block fit ``part`` (NaN outside its block) put in."""
-    sel = part.mask
-    out.normals[sel], out.albedo[sel] = part.normals[sel], part.albedo[sel]
-    out.residual_rms[sel] = part.residual_rms[sel]
-    for name, value in part.maps.items():
-        out.maps[name][sel] = value[sel]
-    out.used[:, sel] = part.used[:, sel]
-    for key in ("evaluations", "chunks", "underdetermined_pixels"):
-        out.fit_settings[key] += part.fit_settings[key]
-    out.fit_settings["iterations_last_round"] = max(
-        out.fit_settings["iterations_last_round"], part.fit_settings["iterations_last_round"])
-    return out
-
-
-def gain_sample(mask: np.ndarray, pixels: int, seed: int = 0) -> np.ndarray:
-    """The flat indices (sorted) of at most ``pixels`` True pixels of ``mask`` drawn at random
-    without replacement (``seed``); all of them when there are not more."""
-    flat = np.flatnonzero(mask)
-    if len(flat) > pixels:
-        flat = np.sort(np.random.default_rng(seed).choice(flat, pixels, replace=False))
-    return flat
-
-
-# ---------------------------------------------------------------------------
-#  Set-up: the checked inputs
-# ---------------------------------------------------------------------------
-
-@dataclass
-class _FitData:
-    """The checked inputs of a fit, restricted to the masked pixels (P of them)."""
-
-    obs: np.ndarray                    # (P, K, 3) float32 observations
-    d: np.ndarray                      # (K, 3) unit vectors towards the lights
-    mask: np.ndarray                   # (H, W) bool, the fitted pixels (P of them)
-    free: list[str]                    # the free properties (besides the normal)
-    others: list[str]                  # the free ones that are neither albedo nor grain size
-    grain_name: str                    # the per-pixel grain size of the settings
-    grain: GrainAlbedo | None          # the albedo of a free or fixed grain size
-    fixed: dict                        # the held properties as given
-    fixed_maps: dict[str, np.ndarray]  # held per-pixel float property -> (P,)
-    fixed_albedo: np.ndarray | None    # (P, 3) when neither the albedo nor a grain size is free
-    settings: dict                     # plugin properties held for every pixel
-    gains: np.ndarray                  # (K,) initial gains
-    scale: float                       # their mean: a calibration, not fitted
-    gain_mode: str
-    max_iterations: int
-    rounds: int
-    saturation: float
-    shadow_ratio: float
-    shadow_floor: float
-    max_lanes: int
-    gain_model: GainOptions = GainOptions()
-    solver: str = "drjit"
-    field: tuple[np.ndarray, np.ndarray] | None = None  # near-field lights: (P, K, 3), (P, K)
-    light_distance: float | np.ndarray = math.inf        # r in image widths
-
-    def lights(self, s: slice = slice(None)) -> np.ndarray:
-        """The light directions of the pixels ``s``: (K, 3), or (P_s, K, 3) per pixel."""
-        return self.d if self.field is None else self.field[0][s]
-
-    def irradiance(self, s: slice = slice(None)) -> np.ndarray | None:
-        """The irradiance factors (P_s, K) of the pixels ``s``; None for distant lights."""
-        return None if self.field is None else self.field[1][s]
-
-    def light_gains(self, gains: np.ndarray, s: slice = slice(None)) -> np.ndarray:
-        """(1, K, 1) or (P_s, K, 1): the gains times the pixels' irradiance factors."""
-        if self.field is None:
-            return gains[None, :, None]
-        return (gains[None, :] * self.field[1][s])[:, :, None]
-
-    @property
-    def saturated(self) -> np.ndarray:
-        """(P, K): observations with a channel at or above the saturation level."""
-        return np.any(self.obs >= self.saturation, axis=2)
-
-    def flags(self, predicted: np.ndarray) -> np.ndarray:
-        """Weights (P, K): 0 where saturated or where the observed channel mean is below the
-        ``predicted`` one (P, K, 3) by more than ``max(shadow_ratio x predicted,
-        shadow_floor)``."""
-        obs = self.obs.mean(axis=2)
-        pred = predicted.mean(axis=2)
-        shadow = (pred - obs) > np.maximum(self.shadow_ratio * pred, self.shadow_floor)
-        return (~self.saturated & ~shadow).astype(np.float64)
-
-
-def _check_free(free: Sequence[str] | None) -> list[str]:
-    """The free properties (default :data:`MAP_DEFAULT_FREE`), checked."""
-    free = list(MAP_DEFAULT_FREE if free is None else free)
-    for name in free:
-        if name not in FREE_PROPERTIES:
-            raise ValueError(f"free property {name!r} is not fittable per pixel; choose among "
-                             f"{list(FREE_PROPERTIES)}")
-    if len(set(free)) != len(free):
-        raise ValueError(f"free = {free} names a property twice")
-    n_par = 2 + sum(3 if n == "albedo" else 1 for n in free)
-    if n_par > 10:
-        raise ValueError(f"free = {free} gives {n_par} numbers per pixel; valid range is at "
-                         "most 10 (normal 2 + albedo 3 + 5)")
-    return free
-
-
-def _check_options(gains: str, max_iterations: int, rounds: int, saturation: float,
-                   shadow_ratio: float, shadow_floor: float, max_lanes: int,
-                   solver: str = "drjit") -> dict:
-    """The fit's scalar options, checked, by :class:`_FitData` field name."""
-    if gains not in GAIN_MODES:
-        raise ValueError(f"gains = {gains!r} is not a gain mode; choose one of {GAIN_MODES}")
-    if solver not in SOLVERS:
-        raise ValueError(f"solver = {solver!r} is not a solver; choose one of {SOLVERS}")
-    return {"gain_mode": gains, "solver": solver,
-            "max_iterations": check_count("max_iterations", max_iterations, 1),
-            "rounds": check_count("rounds", rounds, 1),
-            "saturation": check_range("saturation", saturation, 0.0, math.inf,
-                                      open_lower=True),
-            "shadow_ratio": check_range("shadow_ratio", shadow_ratio, 0.0, 1.0,
-                                        open_lower=True),
-            "shadow_floor": check_range("shadow_floor", shadow_floor, 0.0, math.inf),
-            "max_lanes": check_count("max_lanes", max_lanes, 1)}
-
-
-def _check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
-    """The pixels to fit, bool (H, W) (default all); at least one."""
-    if mask is None:
-        return np.ones(shape, dtype=bool)
-    mask = np.asarray(mask)
-    if mask.shape != shape:
-        raise ValueError(f"mask has shape {mask.shape}; expected {shape}")
-    mask = mask.astype(bool)
-    if not mask.any():
-        raise ValueError("mask selects no pixel; it needs at least one True")
-    return mask
-
-
-def _fixed_albedo(fixed: Mapping, free: Sequence[str], grain_name: str,
-                  grain: GrainAlbedo | None, mask: np.ndarray) -> np.ndarray | None:
-    """The held albedo of the masked pixels (P, 3): a fixed grain size's, or the fixed albedo;
-    None when the albedo or the grain size is free."""
-    shape = mask.shape
-    if grain is not None and grain_name in fixed:
-        return grain(property_map(grain_name, fixed[grain_name], shape)[mask])[0]
-    if "albedo" in free or grain_name in free:
-        return None
-    if "albedo" not in fixed:
-        raise ValueError(f"albedo is neither free nor fixed; give fixed={{'albedo': ...}} "
-                         f"or free (or fix) the grain size {grain_name}")
-    a = np.asarray(fixed["albedo"], dtype=np.float64)
-    a = np.broadcast_to(a, shape + (3,)) if a.shape == (3,) else a
-    if a.shape != shape + (3,):
-        raise ValueError(f"fixed albedo has shape {a.shape}; expected (3,) or "
-                         f"({shape[0]}, {shape[1]}, 3)")
-    for c in range(3):
-        property_map("albedo", a[..., c], shape)
-    return a[mask]
-
-
-def _held(fixed: Mapping | None, free: list[str], mask: np.ndarray) -> dict:
-    """The held properties, checked against the free ones, by :class:`_FitData` field name:
-    ``fixed``, ``fixed_maps``, ``grain_name``, ``settings``, ``grain``, ``fixed_albedo``."""
-    fixed = dict(fixed or {})
-    for name in free:
-        if name in fixed:
-            raise ValueError(f"property {name!r} is both free and fixed")
-    fixed_maps = {n: property_map(n, v, mask.shape)[mask] for n, v in fixed.items()
-                  if n in MAP_PROPERTIES}
-    grain_name = grain_map_name(fixed)
-    wrong = [n for n in GRAIN_MAPS if n in free and n != grain_name]
-    if wrong:
-        raise ValueError(f"{wrong[0]} cannot be free with grains = "
-                         f"{fixed.get('grains', 'sphere')!r}; free {grain_name} instead")
-    settings = {n: v for n, v in fixed.items()
-                if n not in MAP_PROPERTIES and n != "albedo" and n != grain_name}
-    grain = None
-    if grain_name in free or grain_name in fixed:
-        if "albedo" in free or "albedo" in fixed:
-            raise ValueError(f"albedo and {grain_name} cannot both be given: the grains set the "
-                             "albedo per pixel; free or fix one of them")
-        grain = GrainAlbedo(grain_name, settings)
-    return {"fixed": fixed, "fixed_maps": fixed_maps, "grain_name": grain_name,
-            "settings": settings, "grain": grain,
-            "fixed_albedo": _fixed_albedo(fixed, free, grain_name, grain, mask)}
-
-
-def _set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | None,
-            mask: np.ndarray | None, fixed: Mapping | None, initial_gains: np.ndarray | None,
-            options: Mapping, light_distance: float | np.ndarray = math.inf,
-            pixels: np.ndarray | bool | None = None) -> _FitData:
-    """Check every input of :func:`fit_maps` (in the order of its arguments) and gather the
-    observations of the masked pixels, or of ``pixels`` (bool (H, W), a subset of the mask:
-    a block), or of none (``pixels=False``: a plan, whose ``mask`` is the whole mask)."""
-    imgs = check_images(images)
-    k, h, w, _ = imgs.shape
-    d = check_directions(directions)
-    if len(d) != k:
-        raise ValueError(f"directions has {len(d)} rows for {k} images; expected one per image")
-    free = _check_free(free)
-    checked = _check_options(**options)
-    g = check_gains(initial_gains, k)
-    mask = _check_mask(mask, (h, w))
-    if pixels is False:
-        sel = np.zeros_like(mask)
-    else:
-        sel = mask if pixels is None else mask & pixels
-        mask = sel
-    held = _held(fixed, free, sel)
-    others = [n for n in free if n != "albedo" and n not in GRAIN_MAPS]
-    obs = np.ascontiguousarray(imgs[:, sel].transpose(1, 0, 2), dtype=np.float32)
-    return _FitData(obs=obs, d=d, mask=mask, free=free, others=others, gains=g,
-                    scale=float(np.mean(g)), **held, **checked,
-                    field=near_field(d, light_distance, (h, w), sel),
-                    light_distance=light_distance)
-
-
 # ---------------------------------------------------------------------------
 #  Parameter layout
 # ---------------------------------------------------------------------------
 
-def _parameter_layout(data: _FitData) -> tuple[list[tuple[str, ParamSpec]], dict]:
+def _parameter_layout(data: FitData) -> tuple[list[tuple[str, ParamSpec]], dict]:
     """The variables of a pixel in column order (name, spec): the normal's slopes, the albedo
     per channel or the grain size, the other free properties; and the specs by name, with the
     correlation length bounded by what the lights resolve (:func:`max_correlation_length`).
@@ -478,7 +171,7 @@ class _Log:
 #  Starts
 # ---------------------------------------------------------------------------
 
-def _initial_start(starts: PixelStarts, data: _FitData, log: _Log
+def _initial_start(starts: PixelStarts, data: FitData, log: _Log
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Start rows and observation weights: shadows are flagged against the Lambertian
     prediction twice, the second start without them (and with the grain-size search)."""
@@ -515,7 +208,7 @@ class _State:
     evaluations: int = 0
 
 
-def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
+def _fit_chunk(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
                y_start: np.ndarray, s: slice, with_gains: bool
                ) -> tuple[np.ndarray, np.ndarray] | None:
     """Fit the pixels ``s`` from ``y_start`` under the current gains; update ``state``; with
@@ -552,7 +245,7 @@ def _fit_chunk(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
     return part
 
 
-def _fit_chunk_drjit(ev: PixelEvaluator, data: _FitData, layout: list, state: _State,
+def _fit_chunk_drjit(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
                      y_start: np.ndarray, s: slice, with_gains: bool
                      ) -> tuple[np.ndarray, np.ndarray] | None:
     """:func:`_fit_chunk` by the Dr.Jit engine (:class:`~mitsuba_powder.rti.engine.PixelSystem`).
@@ -569,7 +262,7 @@ def _fit_chunk_drjit(ev: PixelEvaluator, data: _FitData, layout: list, state: _S
     return part
 
 
-def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: _FitData, layout: list,
+def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: list,
                y: np.ndarray, wt: np.ndarray, log: _Log) -> _State:
     """Rounds of the per-pixel fit alternated with a Gauss-Newton step of the gains (mode
     ``fit``) and new shadow flags; a final per-pixel fit follows the last gain update."""
@@ -615,7 +308,7 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: _FitData, layout: 
 #  Result
 # ---------------------------------------------------------------------------
 
-def _result(ev: PixelEvaluator, data: _FitData, layout: list, specs: Mapping[str, ParamSpec],
+def _result(ev: PixelEvaluator, data: FitData, layout: list, specs: Mapping[str, ParamSpec],
             state: _State, variant: str, log: _Log, t0: float) -> MapsResult:
     """The maps of the fitted rows (NaN outside the mask), the residual per pixel, the
     observations used, and the fit's options and diagnostics."""
@@ -726,7 +419,7 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
                    "shadow_floor": shadow_floor, "max_lanes": max_lanes, "solver": solver}
         gain_model = GainOptions() if gain_model is None else gain_model
         log = _Log(progress)
-        plan = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+        plan = set_up(images, directions, free, mask, fixed, initial_gains, options,
                        pixels=False)
         budget = check_memory(memory_gb)
         scan = None
@@ -734,7 +427,7 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
             if light_distance != "fit":
                 raise ValueError(f"light_distance = {light_distance!r} is not valid; give a "
                                  "distance in image widths (> the half-diagonal), inf or 'fit'")
-            data = _set_up(images, directions, free, mask, fixed, initial_gains, options,
+            data = set_up(images, directions, free, mask, fixed, initial_gains, options,
                            pixels=subsample_mask(plan.mask))
             refit = {"free": free, "fixed": fixed, "gains": gains, "initial_gains": initial_gains,
                      "variant": variant, "gain_model": gain_model, "memory_gb": budget, **options}
@@ -743,22 +436,22 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
                                    {"free": free, "fixed": fixed, "variant": variant,
                                     "gain_model": gain_model, "light_distance": light_distance,
                                     "memory_gb": budget, **options})
-        options.update(gains=plan.gain_mode, max_lanes=_lanes_within(budget, max_lanes))
-        blocks = _pixel_blocks(plan.mask, len(plan.d), budget, plan.gain_mode == "fit")
+        options.update(gains=plan.gain_mode, max_lanes=lanes_within(budget, max_lanes))
+        blocks = pixel_blocks(plan.mask, len(plan.d), budget, plan.gain_mode == "fit")
         result, ev = None, None
         medians = {n: float(np.median(property_map(n, v, plan.mask.shape)[plan.mask]))
                    for n, v in plan.fixed.items() if n in MAP_PROPERTIES}
         for i, block in enumerate(blocks):
             if len(blocks) > 1:
                 log(f"block {i + 1}/{len(blocks)}: {int(block.sum())} pixels")
-            data = _set_up(images, directions, free, mask, fixed, plan.gains, options,
+            data = set_up(images, directions, free, mask, fixed, plan.gains, options,
                            light_distance, pixels=block if len(blocks) > 1 else None)
             data.gain_model, data.scale = gain_model, plan.scale
             ev = ev or PixelEvaluator(data.others + list(data.fixed_maps), data.settings, variant)
             part = _fit_pixels(ev, data, variant, log, medians)
             del data
-            _release(variant)
-            result = part if result is None else _merge_block(result, part)
+            release(variant)
+            result = part if result is None else merge_block(result, part)
         result.mask = plan.mask
         result.fit_settings.update(
             seconds=time.perf_counter() - t0, stages=log.stages, blocks=len(blocks),
@@ -773,7 +466,7 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         return result
 
 
-def _fit_pixels(ev: PixelEvaluator, data: _FitData, variant: str, log: _Log,
+def _fit_pixels(ev: PixelEvaluator, data: FitData, variant: str, log: _Log,
                 medians: Mapping[str, float]) -> MapsResult:
     """The maps of the pixels of ``data`` with the evaluator ``ev``: starts (the held
     properties at ``medians`` in the albedo table), rounds, result."""
@@ -786,7 +479,7 @@ def _fit_pixels(ev: PixelEvaluator, data: _FitData, variant: str, log: _Log,
     return _result(ev, data, layout, specs, state, variant, log, time.perf_counter())
 
 
-def _gains_on_subsample(images: np.ndarray, data: _FitData, gain_pixels: int | None,
+def _gains_on_subsample(images: np.ndarray, data: FitData, gain_pixels: int | None,
                         seed: int, log: _Log, refit: dict) -> MapsResult | None:
     """With gains fitted and more masked pixels than ``gain_pixels``: fit the maps and gains on
     a random subsample (:func:`gain_sample`), then hold those gains in ``data`` (mode
@@ -834,11 +527,11 @@ def fit_light_distance(images: np.ndarray, directions: np.ndarray,
     checked = {n: options.get(n, defaults[n]) for n in names}
     args = (images, directions, options.get("free"), mask, options.get("fixed"),
             options.get("initial_gains"), checked)
-    data = _set_up(*args, pixels=subsample_mask(_set_up(*args, pixels=False).mask))
+    data = set_up(*args, pixels=subsample_mask(set_up(*args, pixels=False).mask))
     return _fit_distance(images, data, {**defaults, **options}, _Log(progress))
 
 
-def _fit_distance(images: np.ndarray, data: _FitData, refit: dict, log: _Log
+def _fit_distance(images: np.ndarray, data: FitData, refit: dict, log: _Log
                   ) -> tuple[float, dict]:
     """One light distance for the whole dome (:mod:`mitsuba_powder.rti.distance`): the
     Lambertian scan on a subsample of the mask, then the powder fit's cost polished over the

@@ -48,10 +48,11 @@ from pathlib import Path
 import numpy as np
 
 from ..outputs import note_inputs, output_path
+from .blocks import GAIN_PIXELS, gain_sample
 from .capture import Capture, lp_image_paths, read_image_window, read_lp, read_mask
 from .checks import check_count, check_gains
 from .cluster import open_client, worker_threads
-from .fit import GAIN_MODES, GAIN_PIXELS, fit_maps, gain_sample
+from .fit import GAIN_MODES, fit_maps
 from .forward import VARIANT
 from .maps import _json_default
 from .result import MapsResult
