@@ -58,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import arg_parser, machine, print_table, pyplot, save_figure
+from _common import arg_parser, print_table, pyplot, save, save_figure
 
 #: noise of the synthetic capture, linear units (1 = full scale)
 NOISE = 0.01
@@ -236,10 +236,8 @@ def run_uninterrupted(lp: Path, out: Path, tile_size: int, workers: int, variant
     finally:
         client.close()
         cluster.close()
-    row = {"run": "uninterrupted", "start_s": round(start_s, 2), **_tile_row(result, seconds),
-           "first_tile_s": round(stamps[0], 2) if stamps else None,
-           "tile_times_s": [round(s, 2) for s in stamps], "peak_mib_workers": peaks,
-           "killed_at_s": None, "tiles_lost": None, "resume_s": None, "aborted": None}
+    row = _run_row("uninterrupted", start_s, result, seconds, stamps, peaks,
+                   killed_at_s=None, tiles_lost=None, resume_s=None, aborted=None)
     return row, result
 
 
@@ -290,14 +288,22 @@ def run_killed(lp: Path, out: Path, tile_size: int, workers: int, variant: str
     finally:
         client.close()
         cluster.close()
-    row = {"run": "worker killed", "start_s": round(start_s, 2), **_tile_row(result, seconds),
-           "first_tile_s": round(stamps[0], 2) if stamps else None,
-           "tile_times_s": [round(s, 2) for s in stamps], "peak_mib_workers": peaks,
-           "killed_at_s": round(kill["at_s"], 2) if kill else None,
-           "killed_after_tiles": kill.get("after_tiles"),
-           "tiles_lost": kill.get("tiles_lost"), "killed_worker_peak_mib": kill.get("peak_mib"),
-           "resume_s": resume_s, "aborted": aborted}
+    row = _run_row("worker killed", start_s, result, seconds, stamps, peaks,
+                   killed_at_s=round(kill["at_s"], 2) if kill else None,
+                   killed_after_tiles=kill.get("after_tiles"),
+                   tiles_lost=kill.get("tiles_lost"),
+                   killed_worker_peak_mib=kill.get("peak_mib"), resume_s=resume_s,
+                   aborted=aborted)
     return row, result
+
+
+def _run_row(run: str, start_s: float, result, seconds: float, stamps: list[float],
+             peaks: list[float], **extra) -> dict:
+    """A run's row: its name, the cluster's start (s), the tiles' numbers, the fit's wall
+    time (s), when each tile finished (s), the workers' peaks (MiB), and ``extra``."""
+    return {"run": run, "start_s": round(start_s, 2), **_tile_row(result, seconds),
+            "first_tile_s": round(stamps[0], 2) if stamps else None,
+            "tile_times_s": [round(t, 2) for t in stamps], "peak_mib_workers": peaks, **extra}
 
 
 def identical(a, b) -> dict[str, bool]:
@@ -408,7 +414,7 @@ def main() -> None:
     own = peak_rss_mib()
     print(f"  this process: peak {own:.0f} MiB ({render_peak:.0f} MiB after the capture); "
           f"identical: {str(row2['identical']).lower()}")
-    meta = {**machine(), "quick": args.quick, "size": size, "lights": lights,
+    meta = {"size": size, "lights": lights,
             "tile_size": tile, "workers": args.workers, "threads_per_worker": 1,
             "drjit_threads_per_tile": 2, "variant": args.variant, "noise": NOISE,
             "image_format": f"exr {BIT_DEPTH} bit, linear", "render_s": round(render_s, 2),
@@ -417,9 +423,7 @@ def main() -> None:
             "peak_mib_benchmark_process": round(own, 1),
             "peak_mib_benchmark_after_capture": round(render_peak, 1),
             "identical": row2["identical"]}
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "rti_tiles.json"
-    path.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    path = save(args.out, "rti_tiles", rows, args.quick, **meta)
     _figure(args.out / "rti_tiles.png", rows)
     print(f"wrote {path}")
 
