@@ -287,3 +287,39 @@ def test_memory_budget_is_checked(capture):
     with pytest.raises(ValueError, match=r"memory_gb = 0 is out of range; valid range is "
                                          r"\(0, inf\)"):
         rf.fit_maps(capture["images"], capture["directions"], memory_gb=0)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--memory-gb", "0"], "argument --memory-gb: --memory-gb = 0 is out of range; valid "
+                           "range is (0, inf)"),
+    (["--memory-gb", "lots"], "argument --memory-gb: --memory-gb = 'lots' is not a number"),
+    (["--solver", "scipy"], "argument --solver: invalid choice: 'scipy'"),
+    (["--gain-pixels", "0"], "argument --gain-pixels: --gain-pixels = 0"),
+])
+def test_cli_names_bad_solver_options(tmp_path, capsys, args, message):
+    from mitsuba_powder.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["fit-maps", "x.lp", "--out", str(tmp_path), *args])
+    assert message in capsys.readouterr().err
+
+
+def test_cli_fit_maps_records_solver_memory_and_gain_pixels(tmp_path):
+    import json
+
+    from mitsuba_powder.cli import main
+
+    cap = rf.synthetic_capture(12, 12, 10, noise=NOISE, seed=4)
+    names = [f"light{k:02d}.exr" for k in range(10)]
+    rf.write_lp(tmp_path / "dirs.lp", names, cap["directions"])
+    like = rf.Capture(images=cap["images"], directions=cap["directions"], names=names,
+                      encoding="linear", file_format="exr", bit_depth=32)
+    rf.write_images(like, cap["images"], names, tmp_path)
+    out = tmp_path / "maps"
+    assert main(["fit-maps", str(tmp_path / "dirs.lp"), "--out", str(out), "--encoding",
+                 "linear", "--solver", "numpy", "--memory-gb", "0.5", "--gain-pixels",
+                 "64", "--rounds", "1"]) == 0
+    fit = json.loads((out / "fit.json").read_text())["fit"]
+    assert fit["solver"] == "numpy" and fit["memory_gb"] == 0.5
+    assert fit["gain_pixels"] == 64 and fit["gains"] == "fit" and fit["blocks"] == 1
+    assert fit["peak_memory_mib"] > 0
