@@ -429,3 +429,16 @@ def assert_updates_reuse_kernels(bsdf, updates: list[tuple[str, float]]) -> None
     assert history, "no kernel ran"
     assert all(h.get("cache_hit", False) for h in history), [
         (h.get("cache_hit"), h.get("operation_count")) for h in history]
+
+
+def write_exr_capture(folder: Path, capture: dict) -> Path:
+    """Write a SYNTHETIC capture (``rti.synthetic_capture``'s dict) into ``folder`` as linear
+    float EXR images ``light00.exr``... and ``dirs.lp``; returns the ``.lp`` path."""
+    from mitsuba_powder import rti
+
+    names = [f"light{k:02d}.exr" for k in range(len(capture["directions"]))]
+    rti.write_lp(folder / "dirs.lp", names, capture["directions"])
+    like = rti.Capture(images=capture["images"], directions=capture["directions"], names=names,
+                       encoding="linear", file_format="exr", bit_depth=32)
+    rti.write_images(like, capture["images"], names, folder)
+    return folder / "dirs.lp"

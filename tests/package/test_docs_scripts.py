@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import write_exr_capture
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -90,14 +92,10 @@ def test_rti_gain_trend_script(tmp_path):
     gains = np.exp(-0.3 * (d[:, 2] - d[:, 2].mean()))
     cap = rti.synthetic_capture(12, 12, 16, noise=0.005, gains=gains / gains.mean(),
                                 light_distance=3.0, seed=2)
-    names = [f"light{k:02d}.exr" for k in range(16)]
-    rti.write_lp(tmp_path / "dirs.lp", names, cap["directions"])
-    like = rti.Capture(images=cap["images"], directions=cap["directions"], names=names,
-                       encoding="linear", file_format="exr", bit_depth=32)
-    rti.write_images(like, cap["images"], names, tmp_path)
+    lp = write_exr_capture(tmp_path, cap)
     out = tmp_path / "trend.json"
     proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "rti_gain_trend.py"),
-                           str(tmp_path / "dirs.lp"), "--light-distance", "3", "--rings", "2",
+                           str(lp), "--light-distance", "3", "--rings", "2",
                            "--json", str(out)], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "near-field share of the slope" in proc.stdout
