@@ -143,6 +143,15 @@ std::map<std::string, std::pair<bool, bool>> property_range_ends() {
         [](const powder_param::Range &r) { return std::pair{ r.lo_closed, r.hi_closed }; });
 }
 
+/// Every numeric property's valid range with its ends, (lo, hi, lo closed, hi closed): the
+/// Range of powder_registry.h whole, as the plugin's checks read it (Range::contains
+/// compares closed ends in single precision)
+std::map<std::string, std::tuple<double, double, bool, bool>> property_intervals() {
+    return per_range([](const powder_param::Range &r) {
+        return std::tuple{ r.lo, r.hi, r.lo_closed, r.hi_closed };
+    });
+}
+
 nb::dict grain_models() {
     using namespace powder_param;
     nb::dict out;
@@ -255,6 +264,9 @@ void def_registry(nb::module_ &m) {
           "property_range_ends gives which ends are closed.");
     m.def("property_range_ends", &property_range_ends,
           "Whether the (lo, hi) ends of each range of property_ranges are closed.");
+    m.def("property_intervals", &property_intervals,
+          "{property: (lo, hi, lo closed, hi closed)}: the valid range of every numeric "
+          "property, with its ends, as the plugin checks it.");
     m.def("grain_models", &grain_models,
           "Per grain model (\"sphere\", \"agglomerate\", \"slab\"): \"size\" (the property "
           "of the first population's size), \"allowed\" and \"required\" (grain properties), "

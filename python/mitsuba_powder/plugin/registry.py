@@ -9,12 +9,48 @@ Sizes are in micrometres, as the plugin's properties.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
-from .. import _optics
+import numpy as np
 
-__all__ = ["DEFAULTS", "GRAIN_MODELS", "GRAIN_SIZES", "GRAIN_VARIABLES", "MATERIALS", "RANGES",
-           "check_grain_model", "grain_size", "material_files", "second_population"]
+from .. import _optics
+from .._checks import interval_text
+
+__all__ = ["DEFAULTS", "GRAIN_MODELS", "GRAIN_SIZES", "GRAIN_VARIABLES", "INTERVALS",
+           "Interval", "MATERIALS", "RANGES", "check_grain_model", "grain_size",
+           "material_files", "second_population"]
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A property's valid values as the plugin checks them (``Range`` of
+    ``powder_registry.h``): ``lower`` to ``upper``, each end closed or open."""
+
+    lower: float
+    upper: float
+    lower_closed: bool
+    upper_closed: bool
+
+    @property
+    def brackets(self) -> str:
+        """``"[)"``, ``"()"``, ``"[]"`` or ``"(]"``."""
+        return ("[" if self.lower_closed else "(") + ("]" if self.upper_closed else ")")
+
+    def __str__(self) -> str:
+        """As the messages write it, e.g. ``[0, inf)``."""
+        return interval_text(self.lower, self.upper, self.brackets)
+
+    def contains(self, values) -> np.ndarray:
+        """bool of ``values`` (any shape) inside, as the plugin's ``Range::contains``: never
+        NaN, closed ends compared in single precision (the plugin stores floats), open ends
+        in double."""
+        v = np.asarray(values, dtype=np.float64)
+        v32 = v.astype(np.float32)
+        lower = (v32 >= np.float32(self.lower)) if self.lower_closed else (v > self.lower)
+        upper = (v32 <= np.float32(self.upper)) if self.upper_closed else (v < self.upper)
+        return ~np.isnan(v) & lower & upper
+
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 
@@ -22,6 +58,9 @@ _PACKAGE = Path(__file__).resolve().parents[1]
 DEFAULTS: dict[str, float | str] = dict(_optics.property_defaults())
 #: {property: (lower, upper)} valid range of every numeric property
 RANGES: dict[str, tuple[float, float]] = dict(_optics.property_ranges())
+#: {property: Interval} valid range of every numeric property, with its open or closed ends
+INTERVALS: dict[str, Interval] = {name: Interval(*ends)
+                                  for name, ends in _optics.property_intervals().items()}
 #: names of the built-in grain materials (the ``material`` property)
 MATERIALS: tuple[str, ...] = tuple(_optics.materials())
 #: {grain model: {"size", "allowed", "required", "two_populations"}} (the ``grains`` property)
