@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import check_range
+from .._checks import check_range, out_of_range
 from ..io.measurements import Measurements
 from .optimise import ParamSpec, finite_difference_jacobian, multistart, sobol_starts
 
@@ -112,11 +112,10 @@ def hapke_roughness(theta_bar: float, wi: np.ndarray, wo: np.ndarray
       S = mue/eta(e) mu0/eta(i) chi / (1 - f + f chi mu/eta(e)).
 
     Both cases agree at i = e; at theta_bar = 0 the result is exactly (mu0, mu, 1)."""
-    lo, hi = THETA_BAR_RANGE
-    theta_bar = float(theta_bar)
+    theta_bar, (lo, hi) = float(theta_bar), THETA_BAR_RANGE
     if not lo <= theta_bar <= hi:
-        raise ValueError(f"theta_bar = {theta_bar:g} deg is out of range; valid range is "
-                         f"[{lo:g}, {hi:g}] deg (Hapke's mean slope angle)")
+        raise ValueError(out_of_range(f"theta_bar = {theta_bar:g} deg", f"[{lo:g}, {hi:g}]",
+                                      "deg (Hapke's mean slope angle)"))
     mu0, mu = wi[:, 2], wo[:, 2]
     if theta_bar == 0.0:
         return mu0, mu, np.ones_like(mu0)

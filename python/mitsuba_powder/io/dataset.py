@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._checks import interval_text
+from .._checks import interval_text, out_of_range
 
 REQUIRED = ("theta_i", "theta_o", "phi", "wavelength", "brf")
 OPTIONAL = ("sigma",)
@@ -158,5 +158,4 @@ def _check_column_range(name: str, value: float, where: str) -> None:
     if not ok:
         closed = ("[" if lo_in else "(") + ("]" if hi_in else ")")
         raise MeasurementError(
-            f"{where}, column '{name}': {value:g} is out of range; valid range is "
-            f"{interval_text(lo, hi, closed)}")
+            out_of_range(f"{where}, column '{name}': {value:g}", interval_text(lo, hi, closed)))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._checks import out_of_range
 from .dataset import MeasurementError, Measurements, _check_column_range
 from .ipag_angles import decide_convention, to_project
 from .ipag_text import (
@@ -68,11 +69,11 @@ def _read_value(raw: _Raw, g: int, lam: float, refl_text: str, err_text: str | N
         raw.nan_values += 1
         return
     if refl < 0:
-        raise MeasurementError(f"{where} (reflectance factor): {refl:g} is out of range; "
-                               "valid range is [0, inf)")
+        raise MeasurementError(out_of_range(f"{where} (reflectance factor): {refl:g}",
+                                            "[0, inf)"))
     if err_text is not None and err < 0:
-        raise MeasurementError(f"{err_where} (error): {err:g} is out of range; valid range "
-                               "is [0, inf) (0: no error, see zero_error)")
+        raise MeasurementError(out_of_range(f"{err_where} (error): {err:g}", "[0, inf)",
+                                            "(0: no error, see zero_error)"))
     raw.add(g, lam, refl, err, where, err_where)
 
 
@@ -83,8 +84,7 @@ def _wavelength(raw: _Raw, text: str, where: str, lineno: int) -> float | None:
         raw.skipped_rows.append(f"{lineno}")
         return None
     if lam < 0:
-        raise MeasurementError(f"{where} (wavelength, nm): {lam:g} is out of range; valid "
-                               "range is (0, inf)")
+        raise MeasurementError(out_of_range(f"{where} (wavelength, nm): {lam:g}", "(0, inf)"))
     return lam
 
 

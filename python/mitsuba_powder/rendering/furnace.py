@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .._checks import check_range
+from .._checks import check_range, out_of_range
 from ..variants import check_variant, use_variant
 from .gonio import eval_channels, film_dict, film_weights, patch_dict, sensor_dict
 
@@ -143,7 +143,7 @@ def white_furnace(properties: dict, theta_o=(0.0, 45.0, 75.0), *,
                          "spp >= 1, resolution >= 2")
     angles = np.atleast_1d(np.asarray(theta_o, dtype=np.float64))
     if np.any((angles < 0) | (angles >= 90)):
-        raise ValueError(f"theta_o = {angles.tolist()} is out of range; valid range is [0, 90)")
+        raise ValueError(out_of_range(f"theta_o = {angles.tolist()}", "[0, 90)"))
     e, b = STRATEGIES[strategy]
     with use_variant(variant):
         views = np.stack([np.sin(np.radians(angles)), np.zeros_like(angles),
