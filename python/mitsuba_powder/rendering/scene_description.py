@@ -7,7 +7,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-__all__ = ["expanded_tree", "scene_files", "scene_with_properties"]
+__all__ = ["expanded_tree", "scene_files", "scene_with_properties", "xml_property"]
 
 
 #: Property names given as strings in a scene description (the others are numbers)
@@ -15,7 +15,7 @@ _STRING_PROPERTIES = ("grains", "mixing", "material", "specular", "surface_fresn
                       "sampling", "energy")
 
 
-def _xml_property(name: str, value):
+def xml_property(name: str, value):
     """The scene-description element of one powder property: ``string`` for the named
     choices and ``rgb_wavelengths``, ``rgb`` for three numbers, ``float`` for one."""
     if name in _STRING_PROPERTIES:
@@ -126,7 +126,7 @@ def scene_with_properties(scene: str | Path, properties: dict
     """
     root, _, _ = expanded_tree(Path(scene))
     powders = [e for e in root.iter("bsdf") if e.get("type") == "powder"]
-    elements = {name: _xml_property(name, value) for name, value in properties.items()}
+    elements = {name: xml_property(name, value) for name, value in properties.items()}
     drop = {name for name, inputs in _OVERRIDES.items()
             if name not in properties and any(k in properties for k in inputs)}
     removed: list[str] = []

@@ -234,10 +234,29 @@ def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
         imgs = imgs[..., None]
     if imgs.ndim != 4:
         raise ValueError(f"images of shape {np.shape(images)}: expected (K, H, W, C)")
-    a = basis(name, directions)
+    a = _design(name, directions, imgs.shape[0])
     k, n = a.shape
-    if imgs.shape[0] != k:
-        raise ValueError(f"{imgs.shape[0]} images for {k} light directions")
+    _, h, w, c = imgs.shape
+    y = imgs.reshape(k, h * w, c)
+    m = None
+    if light_mask is not None:
+        m = np.asarray(light_mask, dtype=bool)
+        if m.shape != (k, h, w):
+            raise ValueError(f"light_mask of shape {m.shape}: expected ({k}, {h}, {w})")
+        m = m.reshape(k, h * w)
+    if not math.isinf(light_distance):
+        coef = _fit_near(name, y, directions, m, float(light_distance), (h, w))
+        return Baseline(name, coef.reshape(n, h, w, c), float(light_distance))
+    return Baseline(name, _fit_far(name, a, y, m, w).reshape(n, h, w, c))
+
+
+def _design(name: str, directions: np.ndarray, k: int) -> np.ndarray:
+    """The design matrix (K, n) of baseline ``name`` at the K light directions, which must
+    determine its n functions."""
+    a = basis(name, directions)
+    n = a.shape[1]
+    if len(a) != k:
+        raise ValueError(f"{k} images for {len(a)} light directions")
     if k < n:
         raise ValueError(f"baseline {name!r} has {n} coefficients per channel; {k} lights are "
                          "too few")
@@ -245,37 +264,33 @@ def fit_baseline(name: str, images: np.ndarray, directions: np.ndarray,
     if rank < n:
         raise ValueError(f"the {k} light directions determine only {rank} of the {n} "
                          f"functions of baseline {name!r} (rank-deficient design)")
-    _, h, w, c = imgs.shape
-    y = imgs.reshape(k, h * w, c)
-    coef = np.empty((n, h * w, c), dtype=np.float32)
-    m = None if light_mask is None else np.asarray(light_mask, dtype=bool)
-    if not math.isinf(light_distance):
-        if m is not None and m.shape != (k, h, w):
-            raise ValueError(f"light_mask of shape {m.shape}: expected ({k}, {h}, {w})")
-        coef = _fit_near(name, y, directions, None if m is None else m.reshape(k, -1),
-                         float(light_distance), (h, w))
-        return Baseline(name, coef.reshape(n, h, w, c), float(light_distance))
-    if light_mask is None:
+    return a
+
+
+def _fit_far(name: str, a: np.ndarray, y: np.ndarray, m: np.ndarray | None, w: int
+             ) -> np.ndarray:
+    """Coefficients (n, P, C) float32 of distant lights: least squares of the observations
+    ``y`` (K, P, C) on the design ``a`` (K, n), every light or those of ``m`` (K, P) per pixel
+    (of an image ``w`` px wide)."""
+    k, n = a.shape
+    coef = np.empty((n,) + y.shape[1:], dtype=np.float32)
+    if m is None:
         pinv = np.linalg.pinv(a)  # (n, K)
-        for s in range(0, h * w, _CHUNK):
+        for s in range(0, y.shape[1], _CHUNK):
             block = y[:, s:s + _CHUNK].astype(np.float64)
             coef[:, s:s + _CHUNK] = np.einsum("nk,kpc->npc", pinv, block)
-    else:
-        m = np.asarray(light_mask, dtype=bool)
-        if m.shape != (k, h, w):
-            raise ValueError(f"light_mask of shape {m.shape}: expected ({k}, {h}, {w})")
-        m = m.reshape(k, h * w)
-        counts = m.sum(axis=0)
-        if np.any(counts < n):
-            p = int(np.flatnonzero(counts < n)[0])
-            raise ValueError(f"light_mask leaves {int(counts[p])} lights at pixel (x={p % w}, "
-                             f"y={p // w}) ({int(np.sum(counts < n))} pixels have fewer than "
-                             f"{n}); baseline {name!r} needs >= {n}")
-        for s in range(0, h * w, _CHUNK):
-            wgt = m[:, s:s + _CHUNK].astype(np.float64)  # (K, P)
-            gram = np.einsum("kp,ki,kj->pij", wgt, a, a)
-            rhs = np.einsum("kp,ki,kpc->pic", wgt, a, y[:, s:s + _CHUNK].astype(np.float64))
-            coef[:, s:s + _CHUNK] = _solve(gram, rhs, s, w, "light_mask: the lights kept at "
-                                           f"pixel {{}} do not determine the {n} functions "
-                                           f"of baseline {name!r}")
-    return Baseline(name, coef.reshape(n, h, w, c))
+        return coef
+    counts = m.sum(axis=0)
+    if np.any(counts < n):
+        p = int(np.flatnonzero(counts < n)[0])
+        raise ValueError(f"light_mask leaves {int(counts[p])} lights at pixel (x={p % w}, "
+                         f"y={p // w}) ({int(np.sum(counts < n))} pixels have fewer than "
+                         f"{n}); baseline {name!r} needs >= {n}")
+    for s in range(0, y.shape[1], _CHUNK):
+        wgt = m[:, s:s + _CHUNK].astype(np.float64)  # (K, P)
+        gram = np.einsum("kp,ki,kj->pij", wgt, a, a)
+        rhs = np.einsum("kp,ki,kpc->pic", wgt, a, y[:, s:s + _CHUNK].astype(np.float64))
+        coef[:, s:s + _CHUNK] = _solve(gram, rhs, s, w, "light_mask: the lights kept at "
+                                       f"pixel {{}} do not determine the {n} functions "
+                                       f"of baseline {name!r}")
+    return coef

@@ -47,6 +47,7 @@ import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import colour
 import mitsuba as mi
@@ -55,9 +56,9 @@ import numpy as np
 from ..outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
 from ..variants import use_variant
 
-__all__ = ["Capture", "ENCODINGS", "MIN_LZ_DEFAULT", "decode", "encode", "load_capture",
-           "lp_image_paths", "read_image", "read_image_window", "read_lp", "read_mask",
-           "write_images", "write_lp"]
+__all__ = ["Capture", "ENCODINGS", "LpFile", "MIN_LZ_DEFAULT", "decode", "encode",
+           "load_capture", "lp_image_paths", "read_image", "read_image_window", "read_lp",
+           "read_lp_file", "read_mask", "write_images", "write_lp"]
 
 #: the transfer functions between file values and linear values
 ENCODINGS = ("srgb", "linear")
@@ -139,11 +140,46 @@ def encode(values: np.ndarray, encoding: str) -> np.ndarray:
     return np.sign(x) * colour.cctf_encoding(np.abs(x), function="sRGB")
 
 
-def _parse_lp_text(text: str, where: str, min_lz: float
-                   ) -> tuple[list[str], np.ndarray, list[int]]:
-    """(names, unit directions, line numbers) of the text of an .lp file ``where``."""
-    lines = text.splitlines()
-    numbered = [(i, ln.strip()) for i, ln in enumerate(lines, start=1) if ln.strip()]
+class LpFile(NamedTuple):
+    """An ``.lp`` file as read (:func:`read_lp_file`): the K file names, the unit directions
+    (float64 (K, 3)), the vectors as written (float64 (K, 3): directions or positions) and the
+    line number of each light."""
+
+    names: list[str]
+    directions: np.ndarray
+    vectors: np.ndarray
+    lines: list[int]
+
+
+def _parse_lp_text(text: str, where: str, min_lz: float) -> LpFile:
+    """The lights of the text of an .lp file ``where`` (format and checks: module docstring)."""
+    numbered = [(i, ln.strip()) for i, ln in enumerate(text.splitlines(), start=1) if ln.strip()]
+    count = _lp_count(numbered, where)
+    names: list[str] = []
+    dirs: list[tuple[float, ...]] = []
+    vectors: list[list[float]] = []
+    numbers: list[int] = []
+    seen: dict[str, int] = {}
+    for lineno, line in numbered[1:]:
+        name, vec, unit = _lp_line(line, f"{where}, line {lineno}", min_lz)
+        if name in seen:
+            raise ValueError(f"{where}, line {lineno}: file name {name!r} repeats line "
+                             f"{seen[name]}; expected one line per image")
+        seen[name] = lineno
+        names.append(name)
+        dirs.append(unit)
+        vectors.append(vec)
+        numbers.append(lineno)
+    if len(names) != count:
+        raise ValueError(f"{where}, line {numbered[0][0]}: the count says {count} lights but "
+                         f"the file has {len(names)} light lines (up to line "
+                         f"{numbered[-1][0]})")
+    return LpFile(names, np.array(dirs, dtype=np.float64),
+                  np.array(vectors, dtype=np.float64).reshape(-1, 3), numbers)
+
+
+def _lp_count(numbered: list[tuple[int, str]], where: str) -> int:
+    """The number of lights on the first non-blank line."""
     if not numbered:
         raise ValueError(f"{where}: empty file; expected the number of lights on line 1, then "
                          "'filename lx ly lz' per light")
@@ -155,51 +191,38 @@ def _parse_lp_text(text: str, where: str, min_lz: float
                          "(an integer >= 1)") from None
     if count < 1:
         raise ValueError(f"{where}, line {first_no}: number of lights {count}; expected >= 1")
-    names: list[str] = []
-    dirs: list[tuple[float, float, float]] = []
-    numbers: list[int] = []
-    seen: dict[str, int] = {}
-    for lineno, line in numbered[1:]:
-        fields = line.split()
-        if len(fields) < 4:
-            raise ValueError(f"{where}, line {lineno}: {line!r} has {len(fields)} fields; "
-                             "expected 'filename lx ly lz' (a name and 3 numbers)")
-        name = line.rsplit(maxsplit=3)[0]
-        vec = []
-        for col, text_value in enumerate(fields[-3:]):
-            axis = "xyz"[col]
-            try:
-                v = float(text_value)
-            except ValueError:
-                raise ValueError(f"{where}, line {lineno}: l{axis} = {text_value!r} is not a "
-                                 "number; expected 'filename lx ly lz'") from None
-            if not math.isfinite(v):
-                raise ValueError(f"{where}, line {lineno}: l{axis} = {text_value!r} is not "
-                                 "finite")
-            vec.append(v)
-        norm = math.sqrt(sum(v * v for v in vec))
-        if norm == 0.0:
-            raise ValueError(f"{where}, line {lineno}: light direction ({fields[-3]}, "
-                             f"{fields[-2]}, {fields[-1]}) is the zero vector; expected a "
-                             "non-zero vector towards the light")
-        unit = tuple(v / norm for v in vec)
-        if unit[2] < min_lz:
-            raise ValueError(f"{where}, line {lineno}: light direction ({fields[-3]}, "
-                             f"{fields[-2]}, {fields[-1]}) has normalised lz = {unit[2]:.4g} < "
-                             f"{min_lz:g} (more than {math.degrees(math.asin(-min_lz)):.1f} "
-                             "degrees below the surface plane); z points towards the camera")
-        if name in seen:
-            raise ValueError(f"{where}, line {lineno}: file name {name!r} repeats line "
-                             f"{seen[name]}; expected one line per image")
-        seen[name] = lineno
-        names.append(name)
-        dirs.append(unit)
-        numbers.append(lineno)
-    if len(names) != count:
-        last = numbered[-1][0]
-        raise ValueError(f"{where}, line {first_no}: the count says {count} lights but the file "
-                         f"has {len(names)} light lines (up to line {last})")
-    return names, np.array(dirs, dtype=np.float64), numbers
+    return count
+
+
+def _lp_line(line: str, where: str, min_lz: float
+             ) -> tuple[str, list[float], tuple[float, ...]]:
+    """(name, vector as written, unit direction) of a light line ``where`` (file, line)."""
+    fields = line.split()
+    if len(fields) < 4:
+        raise ValueError(f"{where}: {line!r} has {len(fields)} fields; expected 'filename lx "
+                         "ly lz' (a name and 3 numbers)")
+    vec = []
+    for axis, text_value in zip("xyz", fields[-3:]):
+        try:
+            v = float(text_value)
+        except ValueError:
+            raise ValueError(f"{where}: l{axis} = {text_value!r} is not a number; expected "
+                             "'filename lx ly lz'") from None
+        if not math.isfinite(v):
+            raise ValueError(f"{where}: l{axis} = {text_value!r} is not finite")
+        vec.append(v)
+    shown = f"({fields[-3]}, {fields[-2]}, {fields[-1]})"
+    norm = math.sqrt(sum(v * v for v in vec))
+    if norm == 0.0:
+        raise ValueError(f"{where}: light direction {shown} is the zero vector; expected a "
+                         "non-zero vector towards the light")
+    unit = tuple(v / norm for v in vec)
+    if unit[2] < min_lz:
+        raise ValueError(f"{where}: light direction {shown} has normalised lz = "
+                         f"{unit[2]:.4g} < {min_lz:g} (more than "
+                         f"{math.degrees(math.asin(-min_lz)):.1f} degrees below the surface "
+                         "plane); z points towards the camera")
+    return line.rsplit(maxsplit=3)[0], vec, unit
 
 
 def read_lp(path: str | Path, min_lz: float = MIN_LZ_DEFAULT
@@ -218,11 +241,13 @@ def read_lp(path: str | Path, min_lz: float = MIN_LZ_DEFAULT
         FileNotFoundError: no such file.
         ValueError: a malformed file (the message names the file and line).
     """
-    names, dirs, _ = _read_lp_lines(path, min_lz)
-    return names, dirs
+    lp = read_lp_file(path, min_lz)
+    return lp.names, lp.directions
 
 
-def _read_lp_lines(path: str | Path, min_lz: float) -> tuple[list[str], np.ndarray, list[int]]:
+def read_lp_file(path: str | Path, min_lz: float = MIN_LZ_DEFAULT) -> LpFile:
+    """An ``.lp`` file's names, unit directions, vectors as written and line numbers
+    (:func:`read_lp`'s checks)."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"light-position file {p} does not exist")
@@ -366,7 +391,7 @@ def load_capture(lp_path: str | Path, encoding: str = "srgb",
     """
     _check_encoding(encoding)
     lp = Path(lp_path)
-    names, dirs, linenos = _read_lp_lines(lp, min_lz)
+    names, dirs, _, linenos = read_lp_file(lp, min_lz)
     images: np.ndarray | None = None
     first: tuple | None = None
     for k, (name, lineno) in enumerate(zip(names, linenos)):
@@ -492,7 +517,7 @@ def _output_names_of(lp_path_or_names: str | Path | Sequence[str]
     if not isinstance(lp_path_or_names, (str, Path)):
         return list(lp_path_or_names), None, [], None
     lp = Path(lp_path_or_names)
-    read_names, directions, linenos = _read_lp_lines(lp, MIN_LZ_DEFAULT)
+    read_names, directions, _, linenos = read_lp_file(lp)
     note_inputs(p for p in lp_image_paths(lp, read_names) if p.exists())
     names = list(output_names(read_names, [f"{lp}, line {n}" for n in linenos]))
     return names, lp, list(read_names), directions

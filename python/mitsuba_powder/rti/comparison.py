@@ -43,6 +43,7 @@ import numpy as np
 from ..outputs import output_path
 from .baselines import BASELINES, fit_baseline
 from .capture import Capture, encode
+from .lights import distance_to_json
 
 __all__ = ["PROTOCOLS", "Comparison", "Row", "baseline_fitter", "compare", "held_out",
            "write_comparison"]
@@ -158,36 +159,15 @@ def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | Non
         models = {name: baseline_fitter(name) for name in models}
     if not models:
         raise ValueError("no model to compare")
-    images, dirs, mask = capture.images, capture.directions, capture.mask
+    dirs, mask = capture.directions, capture.mask
     sel = np.ones(capture.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     rows: list[Row] = []
     maps: dict = {}
     for protocol in protocols:
         idx = held_out(protocol, dirs, phase)
-        keep = np.setdiff1d(np.arange(len(dirs)), idx)
-        truth = images[idx]
-        truth_enc = encode(truth, capture.encoding)
         for name, fit in models.items():
-            t0 = time.perf_counter()
-            model = fit(images[keep], dirs[keep], mask)
-            pred = np.asarray(model.predict(dirs[idx]), dtype=np.float64)
-            seconds = time.perf_counter() - t0
-            if pred.shape != truth.shape:
-                raise ValueError(f"model {name!r}: prediction of shape {pred.shape}, expected "
-                                 f"{truth.shape}")
-            err = encode(pred, capture.encoding) - truth_enc  # (L, H, W, C)
-            err_lin = pred - truth
-            sq = err[:, sel] ** 2  # (L, P, C)
-            rmse = 255.0 * float(np.sqrt(np.mean(sq)))
-            rmse_lin = 255.0 * float(np.sqrt(np.mean(err_lin[:, sel] ** 2)))
-            per_light = (255.0 * np.sqrt(np.mean(sq, axis=(1, 2)))).tolist()
-            emap = np.full(capture.shape, np.nan, dtype=np.float32)
-            emap[sel] = 255.0 * np.sqrt(np.mean(err[:, sel] ** 2, axis=(0, 2)))
-            maps[(protocol, name)] = emap
-            npar = getattr(model, "n_parameters", None)
-            rows.append(Row(name, protocol, idx.tolist(), int(len(keep)),
-                            None if npar is None else int(npar), rmse, rmse_lin, per_light,
-                            seconds))
+            row, maps[(protocol, name)] = _score(capture, name, fit, protocol, idx, sel)
+            rows.append(row)
     info = {
         "lp": str(capture.lp_path) if capture.lp_path else None,
         "lights": int(len(dirs)),
@@ -196,9 +176,36 @@ def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | Non
         "bit_depth": capture.bit_depth,
         "pixels_scored": int(sel.sum()),
         "interpolation_phase": int(phase),
-        "light_distance": None if math.isinf(light_distance) else float(light_distance),
+        "light_distance": distance_to_json(light_distance),
     }
     return Comparison(rows, info, maps)
+
+
+def _score(capture: Capture, name: str, fit: Fitter, protocol: str, idx: np.ndarray,
+           sel: np.ndarray) -> tuple[Row, np.ndarray]:
+    """Model ``name`` fitted on the lights kept by ``protocol`` and scored on the held-out
+    ones ``idx`` at the pixels ``sel``: its row and its error map (8-bit levels)."""
+    images, dirs = capture.images, capture.directions
+    keep = np.setdiff1d(np.arange(len(dirs)), idx)
+    truth = images[idx]
+    t0 = time.perf_counter()
+    model = fit(images[keep], dirs[keep], capture.mask)
+    pred = np.asarray(model.predict(dirs[idx]), dtype=np.float64)
+    seconds = time.perf_counter() - t0
+    if pred.shape != truth.shape:
+        raise ValueError(f"model {name!r}: prediction of shape {pred.shape}, expected "
+                         f"{truth.shape}")
+    err = encode(pred, capture.encoding) - encode(truth, capture.encoding)  # (L, H, W, C)
+    sq = err[:, sel] ** 2  # (L, P, C)
+    rmse = 255.0 * float(np.sqrt(np.mean(sq)))
+    rmse_lin = 255.0 * float(np.sqrt(np.mean((pred - truth)[:, sel] ** 2)))
+    per_light = (255.0 * np.sqrt(np.mean(sq, axis=(1, 2)))).tolist()
+    emap = np.full(capture.shape, np.nan, dtype=np.float32)
+    emap[sel] = 255.0 * np.sqrt(np.mean(err[:, sel] ** 2, axis=(0, 2)))
+    npar = getattr(model, "n_parameters", None)
+    return Row(name, protocol, idx.tolist(), int(len(keep)),
+               None if npar is None else int(npar), rmse, rmse_lin, per_light,
+               seconds), emap
 
 
 def _markdown(comp: Comparison) -> str:

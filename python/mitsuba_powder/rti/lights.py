@@ -56,8 +56,11 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LP_KINDS", "UNIT_TOLERANCE", "LightRig", "check_distance", "half_diagonal",
-           "image_light_field", "light_field", "light_field_derivatives", "pixel_coordinates",
+from .._checks import out_of_range
+
+__all__ = ["LP_KINDS", "UNIT_TOLERANCE", "LightRig", "check_distance", "distance_from_json",
+           "distance_to_json", "half_diagonal", "image_light_field", "light_field",
+           "light_field_derivatives", "parse_light_distance", "pixel_coordinates",
            "point_lights", "read_lp_rig", "rig_from_vectors", "unit_directions"]
 
 #: How far from 1 the norm of an ``.lp`` vector may be for the vector to count as a unit
@@ -111,8 +114,8 @@ class LightRig:
             k = int(np.flatnonzero(np.atleast_1d(bad))[0])
             value = float(np.atleast_1d(r)[k])
             where = "distance" if r.ndim == 0 else f"distance[{k}]"
-            raise ValueError(f"{where} = {value!r} image widths is out of range; valid range "
-                             "is (0, inf] (inf: a distant light)")
+            raise ValueError(out_of_range(f"{where} = {value!r} image widths", "(0, inf]",
+                                          "(inf: a distant light)"))
         if r.ndim == 0:
             object.__setattr__(self, "distance", float(r))
         else:
@@ -178,8 +181,8 @@ def _shape(shape: tuple[int, int]) -> tuple[int, int]:
     except (TypeError, ValueError):
         raise ValueError(f"shape = {shape!r}: expected (H, W), two whole numbers") from None
     if h < 1 or w < 1 or (h, w) != tuple(shape):
-        raise ValueError(f"shape = {tuple(shape)!r} is out of range; valid range is H, W >= 1 "
-                         "(whole numbers of pixels)")
+        raise ValueError(out_of_range(f"shape = {tuple(shape)!r}", "H, W >= 1",
+                                      "(whole numbers of pixels)"))
     return h, w
 
 
@@ -221,11 +224,47 @@ def check_distance(distance: float | np.ndarray, shape: tuple[int, int],
         k = int(np.flatnonzero(np.atleast_1d(bad))[0])
         where = name if r.ndim == 0 else f"{name}[{k}]"
         h, w = _shape(shape)
-        raise ValueError(f"{where} = {float(np.atleast_1d(r)[k])!r} image widths is out of "
-                         f"range; valid range is ({rho:.6g}, inf]: a light must be farther "
-                         f"from the image's centre than the corners of the {w} x {h} px image "
-                         "(its half-diagonal), so that it is never over the imaged area")
+        raise ValueError(out_of_range(
+            f"{where} = {float(np.atleast_1d(r)[k])!r} image widths",
+            f"({rho:.6g}, inf]: a light must be farther from the image's centre than the "
+            f"corners of the {w} x {h} px image (its half-diagonal), so that it is never over "
+            "the imaged area"))
     return r
+
+
+def parse_light_distance(value, name: str = "light_distance", fit: bool = True
+                         ) -> float | np.ndarray | str:
+    """A light distance as given (a number, (K,) numbers, or text: a number, ``inf`` or, with
+    ``fit``, ``"fit"``); checked against an image by :func:`check_distance`.
+
+    Raises:
+        ValueError: text that is none of these, naming ``name``.
+    """
+    if not isinstance(value, str):
+        return value
+    if fit and value.strip() == "fit":
+        return "fit"
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"{name} = {value!r} is not valid; give a distance in image widths "
+                         "(> the half-diagonal), inf" + (" or 'fit'" if fit else "")) from None
+
+
+def distance_to_json(r: float | np.ndarray) -> float | list | None:
+    """A light distance for JSON: a number, a list (one per light) or None (inf)."""
+    if np.ndim(r) == 0:
+        return None if math.isinf(float(r)) else float(r)
+    return [None if math.isinf(v) else float(v) for v in np.asarray(r, dtype=np.float64)]
+
+
+def distance_from_json(value) -> float | np.ndarray:
+    """The inverse of :func:`distance_to_json`."""
+    if value is None:
+        return math.inf
+    if isinstance(value, list):
+        return np.array([math.inf if v is None else float(v) for v in value])
+    return float(value)
 
 
 def _points(xy: np.ndarray) -> np.ndarray:
@@ -327,15 +366,14 @@ def point_lights(rig: LightRig, scene_width: float, gains: np.ndarray | None = N
     """
     width = float(scene_width)
     if not (math.isfinite(width) and width > 0):
-        raise ValueError(f"scene_width = {scene_width!r} is out of range; valid range is "
-                         "(0, inf) scene units")
+        raise ValueError(out_of_range(f"scene_width = {scene_width!r}", "(0, inf)",
+                                      "scene units"))
     g = np.ones(rig.count) if gains is None else np.asarray(gains, dtype=np.float64)
     if g.shape != (rig.count,):
         raise ValueError(f"gains has shape {g.shape}; expected ({rig.count},), one per light")
     if not np.all(np.isfinite(g) & (g > 0)):
         k = int(np.flatnonzero(~(np.isfinite(g) & (g > 0)))[0])
-        raise ValueError(f"gains[{k}] = {float(g[k])!r} is out of range; valid range is "
-                         "(0, inf)")
+        raise ValueError(out_of_range(f"gains[{k}] = {float(g[k])!r}", "(0, inf)"))
     if np.any(np.isinf(rig.distances)):
         k = int(np.flatnonzero(np.isinf(rig.distances))[0])
         raise ValueError(f"light {k} is distant (distance = inf): a point light cannot "
@@ -377,7 +415,7 @@ def rig_from_vectors(vectors: np.ndarray, kind: str = "auto", image_width: float
     if kind not in LP_KINDS:
         raise ValueError(f"kind = {kind!r} is not valid; choose one of {LP_KINDS}")
     if not 0.0 < float(tolerance) < 1.0:
-        raise ValueError(f"tolerance = {tolerance!r} is out of range; valid range is (0, 1)")
+        raise ValueError(out_of_range(f"tolerance = {tolerance!r}", "(0, 1)"))
     norm = np.linalg.norm(v, axis=1)
     unit = np.abs(norm - 1.0) <= tolerance
     if kind == "auto":
@@ -400,8 +438,8 @@ def rig_from_vectors(vectors: np.ndarray, kind: str = "auto", image_width: float
                          "image's width in that unit (e.g. pixel size x width in pixels)")
     width = float(image_width)
     if not (math.isfinite(width) and width > 0):
-        raise ValueError(f"image_width = {image_width!r} is out of range; valid range is "
-                         "(0, inf) in the positions' unit")
+        raise ValueError(out_of_range(f"image_width = {image_width!r}", "(0, inf)",
+                                      "in the positions' unit"))
     return LightRig(v, norm / width), kind
 
 
@@ -422,14 +460,10 @@ def read_lp_rig(path: str | Path, kind: str = "auto", image_width: float | None 
     Returns:
         (names, rig, kind read).
     """
-    from .capture import MIN_LZ_DEFAULT, read_lp
+    from .capture import MIN_LZ_DEFAULT, read_lp_file
 
     p = Path(path)
-    names, _ = read_lp(p, MIN_LZ_DEFAULT if min_lz is None else min_lz)
-    lines = [(n, ln.split()) for n, ln in
-             enumerate(p.read_text(encoding="utf-8", errors="replace").splitlines(), start=1)
-             if ln.strip()][1:]
-    vectors = np.array([[float(f) for f in fields[-3:]] for _, fields in lines])
-    rig, found = rig_from_vectors(vectors, kind, image_width, distance,
-                                  [f"{p}, line {n}" for n, _ in lines])
-    return names, rig, found
+    lp = read_lp_file(p, MIN_LZ_DEFAULT if min_lz is None else min_lz)
+    rig, found = rig_from_vectors(lp.vectors, kind, image_width, distance,
+                                  [f"{p}, line {n}" for n in lp.lines])
+    return lp.names, rig, found

@@ -34,15 +34,17 @@ from __future__ import annotations
 
 import json
 import math
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
 from ..outputs import guarding_inputs, note_input, note_inputs, output_path
+from ..rendering.scene_description import xml_property
 from ..variants import use_variant
 from .capture import Capture, write_images
 from .gains import GainModel
-from .lights import read_lp_rig
+from .lights import LightRig, distance_from_json, distance_to_json, point_lights, read_lp_rig
 from .properties import GRAIN_MAPS, MAP_GRAIN_SETTINGS
 from .result import MapsResult
 
@@ -178,15 +180,14 @@ def _indented(xml: str) -> str:
 
 
 def _property_xml(settings: dict) -> str:
-    """The powder's held settings as XML properties (strings and finite numbers)."""
+    """The powder's held settings (strings and finite numbers) as the XML properties of
+    :func:`mitsuba_powder.rendering.scene_description.xml_property`."""
     props = []
     for key, value in settings.items():
-        if isinstance(value, bool) or value is None:
-            continue
-        if isinstance(value, str):
-            props.append(f'            <string name="{key}" value="{value}"/>')
-        elif isinstance(value, (int, float)) and math.isfinite(value):
-            props.append(f'            <float name="{key}" value="{value!r}"/>')
+        if isinstance(value, str) or (isinstance(value, (int, float)) and
+                                      not isinstance(value, bool) and math.isfinite(value)):
+            element = ET.tostring(xml_property(key, value), encoding="unicode")
+            props.append("            " + element.replace(" />", "/>"))
     return "\n".join(props)
 
 
@@ -201,10 +202,11 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
     r = float(np.median(result.light_distance))
     if math.isinf(r):
         emitter, defaults = _DISTANT
-    else:
+    else:  # the defaults: a light of gain 1 at the zenith
         sw = 2.0 * w / h
+        position, intensity = point_lights(LightRig(np.array([[0.0, 0.0, 1.0]]), r), sw)
         emitter = _NEAR[0].format(r=r, sw=sw)
-        defaults = _NEAR[1].format(pz=r * sw, intensity=(r * sw) ** 2)
+        defaults = _NEAR[1].format(pz=float(position[0, 2]), intensity=float(intensity[0]))
     return _SCENE.format(w=w, h=h, aspect=w / h, normalmap=_bitmap_xml("normalmap",
                                                                         NORMAL_TANGENT),
                          albedo=albedo, maps=maps, props=_property_xml(settings),
@@ -232,9 +234,21 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
             so that :func:`relight_files` can read a positions ``.lp``).
     """
     out = Path(out_dir)
+    # every output checked before anything is written
+    target = {name: output_path(out, name) for name in maps_files(result.maps)}
+    _write_map_files(result, target)
+    settings = {k: v for k, v in result.settings.items()
+                if isinstance(v, (str, int, float)) and not isinstance(v, bool)}
+    target["scene.xml"].write_text(scene_xml(result, settings))
+    info = _fit_info(result, settings, capture, light_names, pixel_size)
+    path = target["fit.json"]
+    path.write_text(json.dumps(info, indent=1, default=_json_default))
+    return path
+
+
+def _write_map_files(result: MapsResult, target: dict[str, Path]) -> None:
+    """The EXR maps of :func:`write_maps` (``target``: file name -> path)."""
     maps = result.as_maps()
-    target = {name: output_path(out, name) for name in maps_files(result.maps)}  # all checked
-    # before writing
     for name in result.maps:
         _write_exr(target[f"{name}.exr"], np.asarray(maps[name], dtype=np.float32))
     # the albedo per channel (with a grain-size map: the grains', for reading only)
@@ -245,12 +259,15 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
     _write_exr(target[NORMAL_TANGENT], 0.5 * (normals + 1.0))
     _write_exr(target["residual.exr"], result.residual_rms)
     _write_exr(target["mask.exr"], result.mask.astype(np.float32))
-    settings = {k: v for k, v in result.settings.items()
-                if isinstance(v, (str, int, float)) and not isinstance(v, bool)}
-    target["scene.xml"].write_text(scene_xml(result, settings))
-    info = {
+
+
+def _fit_info(result: MapsResult, settings: dict, capture: Capture | None,
+              light_names: list[str] | None, pixel_size: float | None) -> dict:
+    """The contents of ``fit.json`` (module docstring)."""
+    mask = result.mask
+    return {
         "kind": "mitsuba-powder maps",
-        "size": {"height": int(result.mask.shape[0]), "width": int(result.mask.shape[1])},
+        "size": {"height": int(mask.shape[0]), "width": int(mask.shape[1])},
         "free": list(result.free),
         "parameters_per_pixel": result.n_parameters,
         "maps": sorted(result.maps),
@@ -262,41 +279,21 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
             "encoding": capture.encoding, "bit_depth": capture.bit_depth,
             "file_format": capture.file_format,
             "lp": None if capture.lp_path is None else str(capture.lp_path)},
-        "statistics": {**{name: _stats(v[result.mask]) for name, v in result.maps.items()},
-                       **{f"albedo[{c}]": _stats(result.albedo[..., c][result.mask])
+        "statistics": {**{name: _stats(v[mask]) for name, v in result.maps.items()},
+                       **{f"albedo[{c}]": _stats(result.albedo[..., c][mask])
                           for c in range(3)},
-                       "residual_rms": _stats(result.residual_rms[result.mask])},
-        "used_observations": float(result.used[:, result.mask].mean())
-        if result.mask.any() else 0.0,
+                       "residual_rms": _stats(result.residual_rms[mask])},
+        "used_observations": float(result.used[:, mask].mean()) if mask.any() else 0.0,
         "fit": result.fit_settings,
         "light_rig": {
             "model": "distant" if np.all(np.isinf(result.light_distance)) else "near",
-            "distance": _distance_json(result.light_distance),
+            "distance": distance_to_json(result.light_distance),
             "distance_source": result.fit_settings.get("light_distance_source", "distant"),
             "pixel_size": pixel_size,
             "units": "distance in image widths from the image's centre (null: distant); "
                      "pixel_size in the .lp positions' unit per pixel"},
         "gain_model": None if result.gain_model is None else result.gain_model.to_dict(),
     }
-    path = target["fit.json"]
-    path.write_text(json.dumps(info, indent=1, default=_json_default))
-    return path
-
-
-def _distance_json(r: float | np.ndarray) -> float | list | None:
-    """A light distance for JSON: a number, a list (one per light) or None (inf)."""
-    if np.ndim(r) == 0:
-        return None if math.isinf(float(r)) else float(r)
-    return [None if math.isinf(v) else float(v) for v in np.asarray(r, dtype=np.float64)]
-
-
-def _distance_of(value) -> float | np.ndarray:
-    """The inverse of :func:`_distance_json`."""
-    if value is None:
-        return math.inf
-    if isinstance(value, list):
-        return np.array([math.inf if v is None else float(v) for v in value])
-    return float(value)
 
 
 def _json_default(value):
@@ -336,7 +333,7 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
         mask=mask,
         variant=info.get("variant", "llvm_ad_rgb"),
         fit_settings=info.get("fit", {}),
-        light_distance=_distance_of((info.get("light_rig") or {}).get("distance")),
+        light_distance=distance_from_json((info.get("light_rig") or {}).get("distance")),
         gain_model=(GainModel.from_dict(info["gain_model"]) if info.get("gain_model")
                     else None),
     )
