@@ -16,6 +16,7 @@ import pytest
 from mitsuba_powder import rti as rf
 from mitsuba_powder.fitting.optimise import ParamSpec
 from mitsuba_powder.rti.forward import PixelEvaluator, slopes_of_normals
+from mitsuba_powder.rti.pixels import PixelData
 from mitsuba_powder.rti.problem import PixelProblem
 from mitsuba_powder.variants import use_variant
 
@@ -110,7 +111,7 @@ def test_jacobian_matches_finite_differences():
     layout += [(n, rf.SPECS[n]) for n in free[1:]]
     p = 16
     obs = rf.render_capture(cap_maps, d).reshape(12, p, 3).transpose(1, 0, 2).astype(float)
-    prob = PixelProblem(ev, obs, np.ones((p, 12)), d, np.full(12, 1.5), layout, {})
+    prob = PixelProblem(ev, PixelData(obs, np.ones((p, 12)), d, np.full(12, 1.5), layout))
     y = np.zeros((p, len(layout) + 1))
     y[:, :2] = slopes_of_normals(cap_maps["normal"].reshape(p, 3)) + 0.05
     y[:, 2:5] = cap_maps["albedo"].reshape(p, 3) * 0.95

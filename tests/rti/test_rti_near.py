@@ -14,10 +14,14 @@ import pytest
 
 import mitsuba_powder.rti as rf
 from mitsuba_powder.cli import main
+from mitsuba_powder.fitting.optimise import ParamSpec
 from mitsuba_powder.rti.baselines import fit_baseline
-from mitsuba_powder.rti.gains import GainOptions
-from mitsuba_powder.rti.lights import LightRig, image_light_field
+from mitsuba_powder.rti.forward import PixelEvaluator, near_field, slopes_of_normals
+from mitsuba_powder.rti.gains import GainTrend
+from mitsuba_powder.rti.lights import LightRig, image_light_field, light_field, pixel_coordinates
 from mitsuba_powder.rti.maps import read_maps, write_maps
+from mitsuba_powder.rti.pixels import PixelData
+from mitsuba_powder.rti.properties import SLOPE_LIMIT
 
 NOISE = 0.01
 NON_IDENTIFIABLE = ("amplitude_volume", "g", "extinction")
@@ -35,18 +39,56 @@ def _albedo_medians(result, cap):
 
 
 def test_distant_lights_are_todays_model_bit_for_bit():
-    maps, _ = rf.synthetic_maps(8, 8, seed=3)
+    """r = inf is the distant model exactly, not a near-field model close to it: a distant
+    rig's light field is its directions and irradiance factors 1 to the last bit; a fit at
+    r = inf (a number or one per light) takes the distant path, with no per-pixel lights; and
+    the near-field paths of the evaluator and of both solvers (per-pixel directions,
+    irradiance factors), fed those values, give the distant model bit for bit."""
     d = rf.dome_directions(12)
-    g = np.linspace(0.8, 1.2, 12)
-    np.testing.assert_array_equal(rf.render_capture(maps, d, g),
-                                  rf.render_capture(maps, d, g, light_distance=math.inf))
+    rig = LightRig(d, math.inf)
+    dirs, s = light_field(rig, pixel_coordinates((8, 8)).reshape(-1, 2))
+    assert np.array_equal(dirs, np.broadcast_to(rig.directions[:, None], dirs.shape))
+    assert np.all(s == 1.0)
+    for r in (math.inf, np.full(12, math.inf)):
+        assert near_field(d, r, (8, 8)) is None
     cap = rf.synthetic_capture(8, 8, 12, seed=3)
     fixed = {n: cap["maps"][n] for n in NON_IDENTIFIABLE}
-    a = rf.fit_maps(cap["images"], d, fixed=fixed, rounds=1)
-    b = rf.fit_maps(cap["images"], d, fixed=fixed, rounds=1, light_distance=math.inf)
-    np.testing.assert_array_equal(a.normals, b.normals)
-    np.testing.assert_array_equal(a.albedo, b.albedo)
-    np.testing.assert_array_equal(a.gains, b.gains)
+    a = rf.fit_maps(cap["images"], d, fixed=fixed, rounds=1, max_iterations=5)
+    b = rf.fit_maps(cap["images"], d, fixed=fixed, rounds=1, max_iterations=5,
+                    light_distance=np.full(12, math.inf))
+    for name in ("normals", "albedo", "gains", "residual_rms"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.fit_settings["light_distance_source"] == "distant"
+    # the near-field paths with the distant field's values: the same model, bit for bit
+    p = 64
+    ev = PixelEvaluator(["amplitude_surface", "correlation_length"] + list(fixed), {},
+                        rf.VARIANT)
+    layout = [("slope_x", _SLOPE), ("slope_y", _SLOPE)]
+    layout += [(f"albedo{c}", rf.SPECS["albedo"]) for c in range(3)]
+    layout += [(n, rf.SPECS[n]) for n in ("amplitude_surface", "correlation_length")]
+    obs = cap["images"].reshape(12, p, 3).transpose(1, 0, 2)
+    held = {n: np.asarray(v, dtype=np.float64).reshape(p) for n, v in fixed.items()}
+    common = (obs, np.ones((p, 12)))
+    distant = PixelData(*common, d, cap["gains"], layout, held)
+    near = PixelData(*common, np.ascontiguousarray(np.broadcast_to(d, (p, 12, 3)),
+                                                   dtype=np.float32),
+                     cap["gains"], layout, held, irradiance=np.ones((p, 12)))
+    y = np.zeros((p, len(layout) + 1))
+    y[:, :2] = slopes_of_normals(cap["maps"]["normal"].reshape(p, 3))
+    y[:, 2:5] = cap["maps"]["albedo"].reshape(p, 3)
+    y[:, 5:7] = [rf.SPECS[n].to_y(rf.SPECS[n].start) for n in ("amplitude_surface",
+                                                                 "correlation_length")]
+    for solver in rf.SOLVERS.values():
+        far_fit, near_fit = (solver(ev, data).solve(y, 5) for data in (distant, near))
+        np.testing.assert_array_equal(far_fit.y, near_fit.y)
+        far_model, near_model = (solver(ev, data).model(far_fit.y, True)
+                                 for data in (distant, near))
+        np.testing.assert_array_equal(far_model[0], near_model[0])
+        for x, z in zip(far_model[1], near_model[1]):
+            np.testing.assert_array_equal(x, z)
+
+
+_SLOPE = ParamSpec(-SLOPE_LIMIT, SLOPE_LIMIT, False, 0.0)
 
 
 def test_near_render_is_the_distant_model_per_pixel():
@@ -108,7 +150,7 @@ def test_smooth_gains_relight_held_out_lights_within_the_noise():
     start = np.full(len(kept), cap["gains"][kept].mean())
     for mode in ("free", "smooth"):
         result = rf.fit_maps(cap["images"][kept], d[kept], fixed=fixed, initial_gains=start,
-                             gain_model=GainOptions(mode))
+                             gain_trend=GainTrend(mode))
         pred = rf.relight(result, d[held])
         per_light = np.sqrt(np.mean((pred - cap["images"][held]) ** 2, axis=(1, 2, 3)))
         assert np.max(per_light) / NOISE < 1.2, (mode, per_light / NOISE)
@@ -141,8 +183,8 @@ def test_near_baselines_exact_for_a_lambertian_surface():
      "light_distance = 'far' is not valid"),
     (lambda cap: fit_baseline("hsh", cap["images"], cap["directions"], light_distance=0.6),
      "light_distance = 0.6 image widths is out of range"),
-    (lambda cap: GainOptions("smooth", spread=-0.1), "gain_spread = -0.1 is out of range"),
-    (lambda cap: GainOptions("trend"), "gain_model = 'trend' is not valid"),
+    (lambda cap: GainTrend("smooth", spread=-0.1), "gain_spread = -0.1 is out of range"),
+    (lambda cap: GainTrend("trend"), "gain_model = 'trend' is not valid"),
 ])
 def test_bad_values_are_named(call, fragment):
     cap = rf.synthetic_capture(8, 8, 12, seed=2)
@@ -238,7 +280,7 @@ def test_fit_json_round_trip_and_old_folders(tmp_path):
     keys reads as distant with no gain model (relit as before)."""
     cap = rf.synthetic_capture(8, 8, 12, seed=5, light_distance=4.0)
     result = rf.fit_maps(cap["images"], cap["directions"], rounds=1, max_iterations=5,
-                         light_distance=4.0, gain_model=GainOptions("free"),
+                         light_distance=4.0, gain_trend=GainTrend("free"),
                          fixed={n: cap["maps"][n] for n in NON_IDENTIFIABLE})
     write_maps(result, tmp_path / "m")
     back, info = read_maps(tmp_path / "m")

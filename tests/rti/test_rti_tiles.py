@@ -55,7 +55,7 @@ def client():
 
 
 def _tiled(capture_lp, out, client, **kwargs):
-    args = {"encoding": "linear", "gain_pixels": GAIN_PIXELS, "client": client,
+    args = {"encoding": "linear", "gain_subsample": GAIN_PIXELS, "client": client,
             "progress": False, **OPTIONS, **kwargs}
     return fit_maps_tiled(capture_lp, out, TILE, **args)
 
@@ -155,7 +155,7 @@ def test_resume_refuses_tiles_of_other_settings(capture_lp, client, reference, t
         _tiled(capture_lp, out, client, resume=True, max_iterations=7)
     # the same gains, another tile size: the first tile file is refused
     with pytest.raises(ValueError, match="tile_r0000_c0000.npz was written with other"):
-        fit_maps_tiled(capture_lp, out, 24, encoding="linear", gain_pixels=GAIN_PIXELS,
+        fit_maps_tiled(capture_lp, out, 24, encoding="linear", gain_subsample=GAIN_PIXELS,
                        client=client, progress=False, resume=True, **OPTIONS)
 
 
@@ -189,34 +189,22 @@ def test_a_scheduler_that_does_not_answer_is_named():
             pass
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--tile-size", "4"], "argument --tile-size: --tile-size = 4 is out of range; valid "
-                           "range is [8, inf]"),
-    (["--tile-size", "16", "--workers", "0"], "argument --workers: --workers = 0"),
-    (["--tile-size", "16", "--scheduler", "nowhere"], "argument --scheduler: --scheduler = "
-                                                      "'nowhere' is not a Dask scheduler"),
-])
-def test_cli_names_bad_tile_options(tmp_path, capsys, args, message):
-    with pytest.raises(SystemExit):
-        main(["fit-maps", "x.lp", "--out", str(tmp_path), *args])
-    assert message in capsys.readouterr().err
-
-
 def test_cli_tile_options_need_a_tile_size(capture_lp, tmp_path, capsys):
     assert main(["fit-maps", str(capture_lp), "--out", str(tmp_path), "--resume"]) == 2
     assert "--resume applies to tiled fits only" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("extra", "message"), [
-    (["--light-distance", "3"], "--light-distance 3 is not supported with --tile-size"),
-    (["--light-distance", "fit"], "--light-distance fit is not supported with --tile-size"),
+    (["--light-distance", "3"], "--light-distance = 3.0 is not supported by tiled fits"),
+    (["--light-distance", "fit"], "--light-distance = 'fit' is not supported by tiled fits"),
     (["--pixel-size", "0.1"], "--pixel-size 0.1 is not supported with --tile-size"),
     (["--gain-model", "smooth"], "--gain-model smooth is not supported with --tile-size"),
 ])
 def test_cli_tiled_fits_refuse_near_field_options(capture_lp, tmp_path, capsys, extra,
                                                    message):
     """A tile is fitted as an image of its own: near-field lights, which depend on the
-    pixels' positions in the whole image, are refused before anything starts."""
+    pixels' positions in the whole image, are refused before anything starts (the light
+    distance by the tiled fit itself: tests/rti/test_rti_options.py)."""
     out = tmp_path / "maps"
     assert main(["fit-maps", str(capture_lp), "--out", str(out), "--tile-size", "16",
                  *extra]) == 2

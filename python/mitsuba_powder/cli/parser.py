@@ -10,6 +10,12 @@ from .fitting import _cmd_compare_models, _cmd_fit, _cmd_simulate
 from .rendering import _cmd_compare_photo, _cmd_info, _cmd_render, _cmd_render_gonio
 from .rti import _cmd_compare_maps, _cmd_fit_maps, _cmd_relight
 
+#: The values of fit-maps' choice options as its help shows them (checked by the fit:
+#: tests/rti/test_rti_options.py compares them with mitsuba_powder.rti's)
+GAIN_MODES = "{fit,fixed}"
+GAIN_MODEL_MODES = "{none,free,smooth}"
+SOLVER_NAMES = "{drjit,numpy}"
+
 
 class _HelpFormatter(argparse.HelpFormatter):
     """Every option's help ends with its default, unless the help already states it."""
@@ -286,66 +292,48 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
                         "(default: albedo, amplitude_surface, correlation_length; "
                         "docs/rti.md says why)")
     _add_capture_options(p, "fitted")
-    p.add_argument("--gains", choices=("fit", "fixed"), default="fit",
+    p.add_argument("--gains", default="fit", metavar=GAIN_MODES,
                    help="per-light gains shared by all pixels: fitted (mean 1) or all 1")
     _add_set_option(p, "a plugin property held for every pixel (repeatable), e.g. "
                     "--set extinction=0.5")
-    p.add_argument("--iterations", type=int, default=30,
+    p.add_argument("--iterations", default=30, metavar="N",
                    help="Levenberg-Marquardt iterations per round")
-    p.add_argument("--rounds", type=int, default=3,
+    p.add_argument("--rounds", default=3, metavar="N",
                    help="alternations of the per-pixel fit with the gains")
-    p.add_argument("--gain-model", choices=("none", "free", "smooth"), default="none",
+    p.add_argument("--gain-model", default="none", metavar=GAIN_MODEL_MODES,
                    help="none: a light not fitted has gain 1 (the gains' mean); free: each "
                         "fitted light keeps its gain, a light not fitted gets the smooth "
                         "trend of the gains in its direction; smooth: the gains are the trend "
                         "(with residuals of relative spread --gain-spread)")
-    p.add_argument("--gain-degree", type=int, default=2,
+    p.add_argument("--gain-degree", default=2, metavar="D",
                    help="degree of the gains' trend, a polynomial in sin(elevation) (0-6)")
-    p.add_argument("--gain-spread", type=float, default=None, metavar="TAU",
+    p.add_argument("--gain-spread", default=None, metavar="TAU",
                    help="smooth gains: relative spread of the lights about the trend (e.g. "
                         "0.02); default none (the gains are the trend)")
     _add_tile_options(p)
     p.set_defaults(func=_cmd_fit_maps)
 
 
-def _checked(check: str, option: str):
-    """An argparse type of the value check ``check`` (``module.function`` under
-    ``mitsuba_powder.rti``, imported when an option is given; its message names ``option``)."""
-    def convert(text: str):
-        from importlib import import_module
-
-        module, function = check.rsplit(".", 1)
-        func = getattr(import_module(f"mitsuba_powder.rti.{module}"), function)
-        value = int(text) if text.strip().lstrip("+-").isdigit() else text
-        try:
-            return func(value, option)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
-    return convert
-
-
 def _add_tile_options(p: argparse.ArgumentParser) -> None:
-    """fit-maps' tiled fit on a Dask cluster (docs/rti.md, "Tiles and clusters")."""
-    p.add_argument("--tile-size", type=_checked("tiles.check_tile_size", "--tile-size"),
-                   default=None, metavar="PX", help="fit in square tiles of PX pixels (>= 8) "
-                   "on a Dask cluster, the gains fitted first on --gain-pixels pixels and "
-                   "held; default: one fit of the whole capture in this process")
-    p.add_argument("--workers", type=_checked("cluster.check_workers", "--workers"),
-                   default=None, metavar="N", help="tiled: worker processes of the local "
-                   "cluster (>= 1; default one per core)")
-    p.add_argument("--scheduler", type=_checked("cluster.check_scheduler", "--scheduler"),
-                   default=None, metavar="tcp://HOST:PORT", help="tiled: an existing Dask "
-                   "cluster's scheduler (its workers read the images from the same path)")
+    """fit-maps' tiled fit on a Dask cluster (docs/rti.md, "Tiles and clusters"), its memory
+    and solver. The values are checked by the fit (mitsuba_powder.rti.options), not here."""
+    p.add_argument("--tile-size", default=None, metavar="PX", help="fit in square tiles of "
+                   "PX pixels (>= 8) on a Dask cluster, the gains fitted first on --gain-pixels "
+                   "pixels and held; default: one fit of the whole capture in this process")
+    p.add_argument("--workers", default=None, metavar="N", help="tiled: worker processes of "
+                   "the local cluster (>= 1; default one per core)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="tiled: an "
+                   "existing Dask cluster's scheduler (its workers read the images from the "
+                   "same path)")
     p.add_argument("--resume", action="store_true",
                    help="tiled: keep the tiles already in OUT/tiles (of the same settings)")
-    p.add_argument("--gain-pixels", type=_checked("tiles.check_gain_pixels", "--gain-pixels"),
-                   default=None, metavar="N", help="pixels of the whole capture the gains "
-                   "are fitted on, then held for every pixel (>= 1; default 16384)")
-    p.add_argument("--memory-gb", type=_checked("blocks.check_memory", "--memory-gb"),
-                   default=None, metavar="GB", help="working memory of the fit besides the "
-                   "images, GiB (> 0; default an eighth of this machine's, at most 1.5): pixels "
-                   "are fitted in blocks that fit in it")
-    p.add_argument("--solver", choices=("drjit", "numpy"), default="drjit",
+    p.add_argument("--gain-pixels", default=None, metavar="N", help="pixels of the whole "
+                   "capture the gains are fitted on, then held for every pixel (>= 1; default "
+                   "16384)")
+    p.add_argument("--memory-gb", default=None, metavar="GB", help="working memory of the fit "
+                   "besides the images, GiB (> 0; default an eighth of this machine's, at most "
+                   "1.5): pixels are fitted in blocks that fit in it")
+    p.add_argument("--solver", default="drjit", metavar=SOLVER_NAMES,
                    help="per-pixel solver: drjit (normal equations in Dr.Jit kernels, "
                         "default) or numpy (the reference)")
 

@@ -1,4 +1,9 @@
-"""RTI commands: ``fit-maps``, ``relight`` and ``compare-maps``."""
+"""RTI commands: ``fit-maps``, ``relight`` and ``compare-maps``.
+
+The fit's options are built once, from the command line, by
+:func:`mitsuba_powder.rti.options.fit_options` (every check and message there; the parser
+converts nothing): the same object the Python API builds.
+"""
 
 from __future__ import annotations
 
@@ -10,79 +15,97 @@ import numpy as np
 
 from .common import _fixed_properties, _names
 
-
-def _powder_fitter(free: list[str] | None, fixed: dict, progress=None,
-                   light_distance: float = math.inf):
-    """compare-maps' powder model: rti.fit_maps with these settings."""
-    from ..rti import fit_maps
-
-    def fit(images, directions, mask=None):
-        return fit_maps(images, directions, free=free, mask=mask, fixed=fixed,
-                        progress=progress, light_distance=light_distance)
-
-    return fit
+#: How messages name the fit's options given by a flag of another name
+FLAGS = {"light_distance": "--light-distance", "memory_gb": "--memory-gb",
+         "gain_subsample": "--gain-pixels", "tile_size": "--tile-size", "workers": "--workers",
+         "scheduler": "--scheduler"}
 
 
-def _light_distance(args: argparse.Namespace, capture) -> tuple[object, str]:
-    """The capture's light distance (image widths: a number, one per light, or ``"fit"``)
-    from ``--light-distance``, ``--pixel-size`` and the .lp vectors, and what the .lp holds
-    (``directions`` or ``positions``).
+def _number(text):
+    """A command-line value as the user typed it: a whole number, a number, or the text (the
+    checks of :func:`~mitsuba_powder.rti.options.fit_options` name what is wrong)."""
+    if not isinstance(text, str):
+        return text
+    if text.strip().lstrip("+-").isdigit():
+        return int(text)
+    try:
+        return float(text)
+    except ValueError:
+        return text
 
-    Raises:
-        ValueError: naming the option, its value and the valid range.
-    """
-    from ..rti.lights import check_distance, read_lp_rig
 
-    h, w = capture.shape
-    text = getattr(args, "light_distance", None)
-    size = getattr(args, "pixel_size", None)
-    if size is not None and not (math.isfinite(size) and size > 0):
-        raise ValueError(f"--pixel-size = {size!r} is out of range; valid range is (0, inf) "
-                         "(the size of a pixel in the unit of the .lp light positions)")
-    value: object = math.inf
-    if text is not None and text != "fit":
-        try:
-            value = float(text)
-        except ValueError:
-            raise ValueError(f"--light-distance = {text!r} is not valid; give a number of "
-                             "image widths, 'inf' or 'fit'") from None
-        check_distance(value, (h, w), "--light-distance")
-    elif text == "fit":
-        value = "fit"
+def _pixel_size(args: argparse.Namespace) -> float | None:
+    """``--pixel-size``, checked: > 0 (None: not given)."""
+    from .._checks import check_range
+
+    if args.pixel_size is None:
+        return None
+    return check_range("--pixel-size", args.pixel_size, 0.0, math.inf, "()",
+                       note="(the size of a pixel in the unit of the .lp light positions)")
+
+
+def _fit_options(args: argparse.Namespace, tiled: bool = False, **given):
+    """fit-maps' options from the command line (with ``given`` ones), checked before the
+    capture is read. A tiled fit takes neither the gains' trend nor the .lp positions'
+    distance (:func:`_check_tiled`)."""
+    from ..rti.gains import GainTrend
+    from ..rti.options import fit_options
+
+    given.update(gains=args.gains, max_iterations=_number(args.iterations),
+                 rounds=_number(args.rounds), solver=args.solver,
+                 memory_gb=_number(args.memory_gb))
+    if args.gain_pixels is not None:
+        given["gain_subsample"] = _number(args.gain_pixels)
+    if args.light_distance is not None:
+        given["light_distance"] = args.light_distance
+    trend = GainTrend(args.gain_model, _number(args.gain_degree), 0, _number(args.gain_spread))
+    if not tiled:
+        given["gain_trend"] = trend
+    return fit_options(names=FLAGS, **given)
+
+
+def _lp_distance(args: argparse.Namespace, capture, options, size: float | None):
+    """``options`` with the lights' distances of an .lp of positions (``size``: the
+    checked ``--pixel-size``, their unit; an .lp of unit directions leaves ``options`` as
+    they are)."""
+    from ..rti.lights import read_lp_rig
+
     if size is None:  # without the positions' unit the vectors are directions (normalised)
-        return value, "directions"
-    _, rig, kind = read_lp_rig(capture.lp_path, "auto", size * w)
-    if kind == "positions":
-        if text is not None:
-            raise ValueError(f"--light-distance = {text!r} was given but {capture.lp_path} "
-                             "holds light positions, which set each light's distance; leave "
-                             "--light-distance out")
-        check_distance(rig.distance, (h, w), f"{capture.lp_path}: light distance")
-        value = rig.distance
-    return value, kind
+        return options
+    _, rig, kind = read_lp_rig(capture.lp_path, "auto", size * capture.shape[1])
+    if kind != "positions":
+        return options
+    if args.light_distance is not None:
+        raise ValueError(f"--light-distance = {args.light_distance!r} was given but "
+                         f"{capture.lp_path} holds light positions, which set each light's "
+                         "distance; leave --light-distance out")
+    return options.replace(light_distance=rig.distance, names={
+        **options.names, "light_distance": f"{capture.lp_path}: light distance"})
 
 
-def _cmd_fit_maps(args: argparse.Namespace) -> int:
-    from ..rti import fit_maps, load_capture
-    from ..rti.blocks import GAIN_PIXELS
-    from ..rti.gains import GainOptions
-    from ..rti.maps import write_maps
+def _load(args: argparse.Namespace):
+    """The capture of ``args``, its size printed."""
+    from ..rti import load_capture
 
-    if args.tile_size is not None:
-        return _cmd_fit_maps_tiled(args)
-    _check_untiled(args)
     capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
     k, h, w, c = capture.images.shape
     print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
           f"{capture.bit_depth} bit, encoding {capture.encoding}")
-    free = _names(args.free)
-    distance, _ = _light_distance(args, capture)
-    options = GainOptions(args.gain_model, args.gain_degree, 0, args.gain_spread)
-    result = fit_maps(capture.images, capture.directions, free=free, mask=capture.mask,
-                      fixed=_fixed_properties(args.set), gains=args.gains,
-                      max_iterations=args.iterations, rounds=args.rounds, progress=print,
-                      light_distance=distance, gain_model=options, solver=args.solver,
-                      gain_pixels=args.gain_pixels or GAIN_PIXELS, memory_gb=args.memory_gb)
+    return capture
+
+
+def _cmd_fit_maps(args: argparse.Namespace) -> int:
+    from ..rti.maps import write_maps
+    from ..rti.plan import run_fit
+
+    if args.tile_size is not None:
+        return _cmd_fit_maps_tiled(args)
+    _check_untiled(args)
+    options = _fit_options(args, free=_names(args.free), fixed=_fixed_properties(args.set))
+    size = _pixel_size(args)
+    capture = _load(args)
+    options = _lp_distance(args, capture, options, size)
+    result = run_fit(capture.images, capture.directions, options, capture.mask, print)
     path = write_maps(result, args.out, capture, list(capture.names), args.pixel_size)
     _print_maps_summary(result, path, args.out)
     return 0
@@ -111,11 +134,9 @@ def _check_untiled(args: argparse.Namespace) -> None:
 
 
 def _check_tiled(args: argparse.Namespace) -> None:
-    """The options a tiled fit does not take yet (a tile is fitted as an image of its own:
-    near-field lights need the pixels' positions in the whole image)."""
+    """The command-line options a tiled fit does not take yet: the unit of .lp positions
+    and the gains' trend (lights at a distance are refused by the tiled fit itself)."""
     for given, option, value in (
-            (args.light_distance not in (None, "inf"), "--light-distance",
-             args.light_distance),
             (args.pixel_size is not None, "--pixel-size", args.pixel_size),
             (args.gain_model not in ("none", "free"), "--gain-model", args.gain_model),
             (args.gain_spread is not None, "--gain-spread", args.gain_spread)):
@@ -126,34 +147,25 @@ def _check_tiled(args: argparse.Namespace) -> None:
 
 def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
     """fit-maps --tile-size: rti.fit_maps_tiled on a Dask cluster, then the maps written."""
-    import numpy as np
-
     from ..outputs import note_input, note_inputs, output_path
     from ..rti import MAP_DEFAULT_FREE, Capture, lp_image_paths, read_lp
-    from ..rti.cluster import open_client
     from ..rti.maps import maps_files, write_maps
-    from ..rti.tiles import GAIN_PIXELS, fit_maps_tiled
+    from ..rti.tiles import fit_maps_tiled
 
+    free = _names(args.free) or MAP_DEFAULT_FREE
+    fixed = _fixed_properties(args.set)
+    options = _fit_options(args, tiled=True, free=free, fixed=fixed)
     _check_tiled(args)
     names, directions = read_lp(args.capture)
     note_inputs(lp_image_paths(args.capture, names))
     if args.mask is not None:
         note_input(args.mask)
-    free = _names(args.free) or MAP_DEFAULT_FREE
-    fixed = _fixed_properties(args.set)
     for name in maps_files([n for n in free if n != "albedo"] + list(fixed)):
         output_path(args.out, name, mkdir=False)  # a refused output fails before the fit
-    with open_client(scheduler=args.scheduler, workers=args.workers,
-                     names=("--scheduler", "--workers")) as client:
-        workers = len(client.scheduler_info()["workers"])
-        print(f"cluster: {client.scheduler.address}, {workers} worker(s), dashboard "
-              f"{client.dashboard_link}")
-        result = fit_maps_tiled(
-            args.capture, args.out, args.tile_size, encoding=args.encoding, mask=args.mask,
-            gains=args.gains, gain_pixels=args.gain_pixels or GAIN_PIXELS, client=client,
-            resume=args.resume, log=print, free=free, fixed=fixed,
-            max_iterations=args.iterations,
-            rounds=args.rounds, solver=args.solver, memory_gb=args.memory_gb)
+    result = fit_maps_tiled(
+        args.capture, args.out, _number(args.tile_size), encoding=args.encoding,
+        mask=args.mask, scheduler=args.scheduler, workers=_number(args.workers),
+        resume=args.resume, log=print, options=options)
     tiles = result.fit_settings["tiles"]
     print(f"tiles: {tiles['fitted']} fitted, {tiles['resumed']} resumed or empty, in "
           f"{result.fit_settings['seconds']:.1f} s")
@@ -168,53 +180,38 @@ def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
+    from ..rti.lights import parse_light_distance
     from ..rti.maps import relight_files
 
-    distance = None
-    if args.light_distance is not None:
-        try:
-            distance = float(args.light_distance)
-        except ValueError:
-            raise ValueError(f"--light-distance = {args.light_distance!r} is not valid; give "
-                             "a number of image widths or 'inf'") from None
-    if args.pixel_size is not None and not (math.isfinite(args.pixel_size)
-                                            and args.pixel_size > 0):
-        raise ValueError(f"--pixel-size = {args.pixel_size!r} is out of range; valid range "
-                         "is (0, inf)")
-    paths = relight_files(args.maps, args.lp, args.out, args.pixel_size, distance)
+    distance = None if args.light_distance is None else parse_light_distance(
+        args.light_distance, "--light-distance", fit=False)
+    paths = relight_files(args.maps, args.lp, args.out, _pixel_size(args), distance)
     print(f"wrote {len(paths)} images to {args.out}")
     return 0
 
 
 def _cmd_compare_maps(args: argparse.Namespace) -> int:
-    from ..rti import load_capture
-    from ..rti.comparison import baseline_fitter, compare, write_comparison
+    from ..rti.baselines import BASELINES
+    from ..rti.comparison import compare, write_comparison
+    from ..rti.options import fit_options
 
     names = [m.strip() for m in args.models.split(",") if m.strip()]
-    free = _names(args.free)
-    from ..rti.baselines import BASELINES
-
     unknown = [n for n in names if n != "powder" and n not in BASELINES]
     if unknown or not names:
         raise ValueError(f"--models {args.models!r}: unknown {unknown}; valid models are "
                          f"{', '.join(list(BASELINES) + ['powder'])}")
-    capture = load_capture(args.capture, encoding=args.encoding, mask=args.mask)
-    k, h, w, c = capture.images.shape
-    print(f"{args.capture}: {k} lights, {w} x {h} px, {c} channels, {capture.file_format} "
-          f"{capture.bit_depth} bit, encoding {capture.encoding}")
-    distance = _compare_distance(args, capture, free)
+    given = {} if args.light_distance is None else {"light_distance": args.light_distance}
+    options = fit_options(free=_names(args.free), fixed=_fixed_properties(args.set),
+                          names=FLAGS, **given)
+    size = _pixel_size(args)
+    capture = _load(args)
+    distance = _compare_distance(args, capture, options, size)
     near = np.any(np.isfinite(distance))
     field = args.field or ("both" if near else "far")
     if field != "far" and not near:
         raise ValueError(f"--field = {field!r} needs a finite light distance (--light-distance "
                          "R or fit, or an .lp of positions)")
-    fixed = _fixed_properties(args.set)
-    models = {}
-    for name in names:
-        for r, suffix in (((math.inf, ""),) if field == "far" else ((distance, "_near"),)
-                          if field == "near" else ((math.inf, ""), (distance, "_near"))):
-            models[name + suffix] = (_powder_fitter(free, fixed, light_distance=r)
-                                     if name == "powder" else baseline_fitter(name, r))
+    models = _compared_models(names, field, distance, options)
     comp = compare(capture, models, phase=args.phase, light_distance=distance)
     path = write_comparison(comp, args.out, error_images=not args.no_error_images)
     print(path.read_text())
@@ -223,17 +220,38 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compare_distance(args: argparse.Namespace, capture, free) -> float | np.ndarray:
+def _compared_models(names: list[str], field: str, distance, options) -> dict:
+    """compare-maps' fitters by row name: each model with distant lights (``far``), at the
+    light distance (``near``, rows ``<model>_near``) or both; the powder model is the
+    per-pixel fit of fit-maps with ``options``."""
+    from ..rti.comparison import baseline_fitter
+    from ..rti.plan import run_fit
+
+    def powder(r):
+        opts = options.replace(light_distance=r)
+        return lambda images, directions, mask=None: run_fit(images, directions, opts, mask)
+
+    fields = {"far": ((math.inf, ""),), "near": ((distance, "_near"),),
+              "both": ((math.inf, ""), (distance, "_near"))}[field]
+    return {name + suffix: powder(r) if name == "powder" else baseline_fitter(name, r)
+            for name in names for r, suffix in fields}
+
+
+def _compare_distance(args: argparse.Namespace, capture, options, size: float | None
+                      ) -> float | np.ndarray:
     """compare-maps' light distance: given, the .lp positions', or fitted once on the whole
     capture (a calibration of the dome, like the gains' mean) with the powder fit."""
-    from ..rti.fit import fit_light_distance
+    from ..rti.lights import check_distance
+    from ..rti.plan import fit_distance
 
-    distance, _ = _light_distance(args, capture)
+    options = _lp_distance(args, capture, options, size)
+    distance = options.light_distance
     if isinstance(distance, str):
-        distance, _ = fit_light_distance(capture.images, capture.directions, free=free,
-                                         mask=capture.mask, fixed=_fixed_properties(args.set),
-                                         progress=print)
+        distance, _ = fit_distance(capture.images, capture.directions, options, capture.mask,
+                                   print)
         print(f"light distance fitted: {distance:.4g} image widths")
+    else:
+        check_distance(distance, capture.shape, options.name("light_distance"))
     if np.ndim(distance) == 1:  # the .lp positions: the models take one distance
         distance = float(np.median(distance))
         print(f"light distance: the median of the .lp positions, {distance:.4g} image widths")

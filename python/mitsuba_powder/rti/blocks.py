@@ -1,10 +1,11 @@
-"""Fits larger than memory: the per-light gains fitted on a pixel subsample
-(:func:`gain_sample`), the pixels in blocks within a working-memory budget
-(:func:`block_pixels`, :func:`pixel_blocks`), the blocks' maps put together
-(:func:`merge_block`) and what a block held released (:func:`release`).
+"""Fits larger than memory: the pixels in blocks within a working-memory budget
+(:func:`block_pixels`, :func:`pixel_blocks`), the blocks' maps and diagnostics put together
+(:func:`merge_block`, :func:`merge_fit_settings`, which the tiles use too) and what a block
+held released (:func:`release`).
 
-Once the gains are held, a pixel's fit depends only on its own observations, so a fit in
-blocks gives the maps of a fit in one (:mod:`mitsuba_powder.rti.fit`; tested bit for bit).
+Once the gains are held (fitted first on a pixel subsample: :mod:`mitsuba_powder.rti.gains`),
+a pixel's fit depends only on its own observations, so a fit in blocks gives the maps of a fit
+in one (:mod:`mitsuba_powder.rti.plan`; tested bit for bit).
 The memory model is measured (``benchmarks/bench_rti_fit.py``): a block's NumPy arrays take
 about :data:`OBSERVATION_BYTES` per pixel and light, a Dr.Jit evaluation of the per-pixel
 solver :data:`LANE_BYTES` per lane.
@@ -17,20 +18,18 @@ import gc
 import math
 import os
 import resource
+from collections.abc import Mapping, Sequence
 
 import drjit as dr
 import numpy as np
 
+from .._checks import check_range
 from ..variants import use_variant
-from .checks import check_range
 from .result import MapsResult
 
-__all__ = ["GAIN_PIXELS", "LANE_BYTES", "LANE_SHARE", "MEMORY_GB_MAX", "OBSERVATION_BYTES",
-           "block_pixels", "check_memory", "default_memory_gb", "gain_sample", "lanes_within",
-           "merge_block", "peak_memory_mib", "pixel_blocks", "release"]
-
-#: Pixels of the subsample the per-light gains are fitted on (then held for every pixel)
-GAIN_PIXELS = 16384
+__all__ = ["LANE_BYTES", "LANE_SHARE", "MEMORY_GB_MAX", "OBSERVATION_BYTES", "SUMMED",
+           "block_pixels", "check_memory", "default_memory_gb", "lanes_within", "merge_block",
+           "merge_fit_settings", "peak_memory_mib", "pixel_blocks", "release"]
 
 #: Largest default working memory of a fit, GiB (:func:`default_memory_gb`)
 MEMORY_GB_MAX = 1.5
@@ -64,7 +63,7 @@ def check_memory(memory_gb: float | str | None, name: str = "memory_gb") -> floa
     """``memory_gb`` (GiB) checked (> 0, finite), or the default (None)."""
     if memory_gb is None:
         return default_memory_gb()
-    return check_range(name, memory_gb, 0.0, math.inf, open_lower=True, open_upper=True)
+    return check_range(name, memory_gb, 0.0, math.inf, "()")
 
 
 def block_pixels(memory_gb: float, lights: int) -> int:
@@ -124,17 +123,19 @@ def merge_block(out: MapsResult, part: MapsResult) -> MapsResult:
     for name, value in part.maps.items():
         out.maps[name][sel] = value[sel]
     out.used[:, sel] = part.used[:, sel]
-    for key in ("evaluations", "chunks", "underdetermined_pixels"):
-        out.fit_settings[key] += part.fit_settings[key]
-    out.fit_settings["iterations_last_round"] = max(
-        out.fit_settings["iterations_last_round"], part.fit_settings["iterations_last_round"])
+    out.fit_settings = merge_fit_settings([out.fit_settings, part.fit_settings])
     return out
 
 
-def gain_sample(mask: np.ndarray, pixels: int, seed: int = 0) -> np.ndarray:
-    """The flat indices (sorted) of at most ``pixels`` True pixels of ``mask`` drawn at random
-    without replacement (``seed``); all of them when there are not more."""
-    flat = np.flatnonzero(mask)
-    if len(flat) > pixels:
-        flat = np.sort(np.random.default_rng(seed).choice(flat, pixels, replace=False))
-    return flat
+#: Diagnostics of ``fit_settings`` that add up over the blocks (or tiles) of a fit
+SUMMED = ("evaluations", "chunks", "underdetermined_pixels")
+
+
+def merge_fit_settings(parts: Sequence[Mapping]) -> dict:
+    """The ``fit_settings`` of a fit in parts (blocks, tiles): the first part's, with the
+    diagnostics of :data:`SUMMED` summed and ``iterations_last_round`` the longest part's."""
+    out = dict(parts[0])
+    for key in SUMMED:
+        out[key] = sum(int(p[key]) for p in parts)
+    out["iterations_last_round"] = max(p["iterations_last_round"] for p in parts)
+    return out

@@ -1,6 +1,7 @@
 """Checks of the RTI inputs (the per-pixel fit's, the forward model's, the baselines' light
-directions): light directions, numbers in a range, counts, normals, images and light gains;
-each error names the argument, its value and the valid range."""
+directions): light directions, counts, normals, images and light gains; each error names the
+argument, its value and the valid range (a number in a range:
+:func:`mitsuba_powder._checks.check_range`)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import math
 
 import numpy as np
 
-__all__ = ["check_count", "check_directions", "check_gains", "check_images", "check_normals",
-           "check_range"]
+from .._checks import check_range, out_of_range
+
+__all__ = ["check_count", "check_directions", "check_gains", "check_images", "check_normals"]
 
 
 def check_directions(directions: np.ndarray, name: str = "directions") -> np.ndarray:
@@ -28,26 +30,10 @@ def check_directions(directions: np.ndarray, name: str = "directions") -> np.nda
     return d / norm[:, None]
 
 
-def check_range(name: str, value: float, lower: float, upper: float,
-                open_lower: bool = False, open_upper: bool = False) -> float:
-    """A finite number in [lower, upper] (open ends as asked; ``upper = inf`` admits inf)."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} = {value!r} is not a number") from None
-    lo_ok = v > lower if open_lower else v >= lower
-    hi_ok = v < upper if open_upper else v <= upper
-    if not (math.isfinite(v) or (upper == math.inf and v == math.inf)) or not (lo_ok and hi_ok):
-        raise ValueError(f"{name} = {value!r} is out of range; valid range is "
-                         f"{'(' if open_lower else '['}{lower:g}, {upper:g}"
-                         f"{')' if open_upper else ']'}")
-    return v
-
-
 def check_count(name: str, value, lower: int, upper: float = math.inf) -> int:
-    """A whole number in [lower, upper] (2.5 is an error, not 2)."""
-    v = check_range(name, value, lower, upper)
-    if not math.isfinite(v) or v != math.floor(v):
+    """A whole number in [lower, upper] (2.5 is an error, not 2; so are True and False)."""
+    v = None if isinstance(value, bool) else check_range(name, value, lower, upper, "[]")
+    if v is None or not math.isfinite(v) or v != math.floor(v):
         raise ValueError(f"{name} = {value!r} is not a whole number; valid range is "
                          f"[{lower:g}, {upper:g}]")
     return int(v)
@@ -87,6 +73,5 @@ def check_gains(gains: np.ndarray | None, k: int) -> np.ndarray:
         raise ValueError(f"gains has shape {g.shape}; expected ({k},), one per light")
     if not np.all(np.isfinite(g)) or np.any(g <= 0):
         i = int(np.nonzero(~(np.isfinite(g) & (g > 0)))[0][0])
-        raise ValueError(f"gains[{i}] = {float(g[i])!r} is out of range; valid range is "
-                         "(0, inf)")
+        raise ValueError(out_of_range(f"gains[{i}] = {float(g[i])!r}", "(0, inf)"))
     return g

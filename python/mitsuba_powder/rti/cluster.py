@@ -21,7 +21,8 @@ import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from .checks import check_count, check_range
+from .._checks import check_range
+from .checks import check_count
 
 __all__ = ["SCHEDULER_TIMEOUT", "check_scheduler", "check_workers", "open_client",
            "worker_threads"]
@@ -82,7 +83,7 @@ def open_client(client=None, scheduler: str | None = None, workers: int | None =
         if workers is not None:
             raise ValueError(f"{names[1]} = {workers!r} applies to the local cluster only; "
                              f"with {names[0]} the cluster's own workers are used")
-        timeout = check_range("timeout", timeout, 0.0, 3600.0, open_lower=True)
+        timeout = check_range("timeout", timeout, 0.0, 3600.0, "(]")
         try:
             remote = Client(address, timeout=timeout)
         except (OSError, TimeoutError) as exc:

@@ -22,7 +22,7 @@ problem, with the same rules, without that array:
   Only the pixels still active are evaluated (their indices by ``dr.compress``).
 * **Gains.** After a pixel's fit, one more kernel gives the model (for the shadow flags and
   the residual map) and, when the gains are fitted, the terms of their reduced system
-  ``S = sum_p (D_p - C_p^T A_p^-1 C_p)`` (:func:`mitsuba_powder.rti.problem.gain_system`):
+  ``S = sum_p (D_p - C_p^T A_p^-1 C_p)`` (:func:`mitsuba_powder.rti.gains.gain_system`):
   with ``A_p = L_p L_p^T``, the lanes carry ``U = L_p^-1 C_p`` (n numbers per lane), and
   ``sum_p C_p^T A_p^-1 C_p = U^T U`` is one matrix product in NumPy.
 
@@ -37,35 +37,23 @@ The same code runs in every RGB variant with AD (``llvm_ad_rgb``, ``cuda_ad_rgb`
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..fitting.optimise import ParamSpec
 from ..variants import use_variant
 from .forward import PixelEvaluator
+from .pixels import PixelData, SolverFit
 from .properties import GRAIN_MAPS, GrainAlbedo
 
-__all__ = ["EngineResult", "PixelSystem", "cholesky_solve"]
+__all__ = ["PixelSystem", "cholesky_solve"]
 
 #: Forward passes keep the traced graph's edges: several passes share one evaluation
 _KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
 
 _LN10 = math.log(10.0)
-
-
-@dataclass
-class EngineResult:
-    """Outcome of :meth:`PixelSystem.solve`: rows ``y`` (P, n), cost (P,), iterations of the
-    longest pixel and kernel launches of the model (one per iteration)."""
-
-    y: np.ndarray
-    cost: np.ndarray
-    iterations: int
-    evaluations: int
 
 
 def _f32(a: np.ndarray):
@@ -153,46 +141,38 @@ class _GrainTable:
 
 
 class PixelSystem:
-    """The per-pixel least-squares problem of P pixels under K lights, in Dr.Jit.
+    """The per-pixel least-squares problem of P pixels under K lights, in Dr.Jit: the solver
+    ``drjit`` of :data:`mitsuba_powder.rti.solvers.SOLVERS` (the default).
 
     Args:
         ev: the fit's evaluator (its plugin instance and variant).
-        observed: (P, K, 3) observations; weights: (P, K) in {0, 1}.
-        directions: (K, 3) unit vectors towards the lights, or (P, K, 3) per pixel.
-        gains: (K,) light gains; irradiance: (P, K) irradiance factors or None (distant).
-        layout: the variables (name, spec) in column order: ``slope_x``, ``slope_y``, then
-            ``albedo0..2`` or a grain size, then free properties (no pixel-index column).
-        fixed: held per-pixel properties of the evaluator -> (P,).
-        fixed_albedo: (P, 3) when neither the albedo nor a grain size is free.
-        grain: the albedo of a free grain size.
+        data: the pixels' observations, weights, lights, gains, variables (``layout``: no
+            pixel-index column) and held properties.
     """
 
-    def __init__(self, ev: PixelEvaluator, observed: np.ndarray, weights: np.ndarray,
-                 directions: np.ndarray, gains: np.ndarray,
-                 layout: Sequence[tuple[str, ParamSpec]], fixed: Mapping[str, np.ndarray],
-                 fixed_albedo: np.ndarray | None = None, grain: GrainAlbedo | None = None,
-                 irradiance: np.ndarray | None = None):
+    def __init__(self, ev: PixelEvaluator, data: PixelData):
         self.ev = ev
-        self.layout = list(layout)
-        self.npix, self.k = observed.shape[:2]
-        self.lower = np.array([s.to_y(s.lower) for _, s in layout], dtype=np.float64)
-        self.upper = np.array([s.to_y(s.upper) for _, s in layout], dtype=np.float64)
+        self.layout = list(data.layout)
+        self.npix, self.k = data.observed.shape[:2]
+        self.lower = np.array([s.to_y(s.lower) for _, s in self.layout], dtype=np.float64)
+        self.upper = np.array([s.to_y(s.upper) for _, s in self.layout], dtype=np.float64)
         self.evaluations = 0
+        directions, fixed_albedo = data.directions, data.fixed_albedo
         with use_variant(ev.variant):
-            self.obs = [_f32(observed[:, :, c]) for c in range(3)]
-            self.sqrt_w = _f32(np.sqrt(weights))
-            self.gains = _f32(gains)
-            self.irradiance = None if irradiance is None else _f32(irradiance)
+            self.obs = [_f32(data.observed[:, :, c]) for c in range(3)]
+            self.sqrt_w = _f32(np.sqrt(data.weights))
+            self.gains = _f32(data.gains)
+            self.irradiance = None if data.irradiance is None else _f32(data.irradiance)
             if directions.ndim == 2:
                 self.table = [_f32(directions[:, c]) for c in range(3)]
                 self.per_pixel_dirs = None
             else:
                 self.table = None
                 self.per_pixel_dirs = [_f32(directions[:, :, c]) for c in range(3)]
-            self.fixed = {n: _f32(v) for n, v in fixed.items()}
+            self.fixed = {n: _f32(v) for n, v in data.fixed.items()}
             self.fixed_albedo = (None if fixed_albedo is None else
                                  [_f32(fixed_albedo[:, c]) for c in range(3)])
-            self.grain = None if grain is None else _GrainTable(grain)
+            self.grain = None if data.grain is None else _GrainTable(data.grain)
         self._passes = self._tangent_passes()
 
     # -- variables -----------------------------------------------------------------------
@@ -317,7 +297,7 @@ class PixelSystem:
 
     # -- Levenberg-Marquardt -------------------------------------------------------------
 
-    def solve(self, y0: np.ndarray, max_iterations: int, ftol: float = 1e-7) -> EngineResult:
+    def solve(self, y0: np.ndarray, max_iterations: int, ftol: float = 1e-7) -> SolverFit:
         """Levenberg-Marquardt from the rows ``y0`` (P, n) (clipped into the box), every pixel at
         once; the rules of
         :func:`~mitsuba_powder.fitting.optimise.batch_levenberg_marquardt` with no hopeless
@@ -358,8 +338,7 @@ class PixelSystem:
                 dr.scatter(active, ~done, pix)
                 dr.eval(y, jtj, jtr, cost, damping, active)
             rows = np.stack([np.array(v, dtype=np.float64) for v in y], axis=1)
-            return EngineResult(rows, np.array(cost, dtype=np.float64), iterations,
-                                self.evaluations)
+            return SolverFit(rows, np.array(cost, dtype=np.float64), iterations)
 
     # -- after the fit -------------------------------------------------------------------
 
@@ -368,7 +347,7 @@ class PixelSystem:
         """The model without gain and irradiance factor, ``f (n . l_k)`` as (P, K, 3) float32,
         at rows ``y``;
         with ``gain_terms``, also the pixels' part ``(S, b)`` of the gains' reduced system
-        (:func:`mitsuba_powder.rti.problem.gain_system`: ``S = sum_p (D_p - C_p^T A_p^-1
+        (:func:`mitsuba_powder.rti.gains.gain_system`: ``S = sum_p (D_p - C_p^T A_p^-1
         C_p)``, ``b = sum_p (J_g^T r - C_p^T A_p^-1 J_p^T r)``)."""
         n, k = len(self.layout), self.k
         with use_variant(self.ev.variant):

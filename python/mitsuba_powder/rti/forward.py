@@ -56,7 +56,8 @@ from .properties import (
 )
 
 __all__ = ["MAX_LANES", "PixelEvaluator", "VARIANT", "check_rgb_variant", "near_field",
-           "normals_of_slopes", "pixel_chunks", "render_capture", "slopes_of_normals"]
+           "normals_of_slopes", "pixel_chunks", "pixel_light_field", "render_capture",
+           "slopes_of_normals"]
 
 #: Default limit of pixels x lights per plugin evaluation (bounds memory: the float64
 #: Jacobian of a chunk takes 24 x lanes x variables bytes)
@@ -240,13 +241,13 @@ def _split_maps(maps: Mapping, shape: tuple[int, int]
 def near_field(directions: np.ndarray, light_distance: float | np.ndarray,
                shape: tuple[int, int], mask: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray] | None:
-    """Per-pixel light directions and irradiance factors of lights at ``light_distance``.
+    """Per-pixel light directions and irradiance factors of lights at ``light_distance``
+    (checked: :func:`mitsuba_powder.rti.lights.check_distance`).
 
     Args:
         directions: (K, 3) unit vectors from the image's centre towards the lights.
         light_distance: r in image widths (a number or (K,)); ``inf``: distant lights.
-        shape: (H, W) pixels of the image (pixel coordinates and the least valid distance,
-            :func:`mitsuba_powder.rti.lights.check_distance`).
+        shape: (H, W) pixels of the image (pixel coordinates and the least valid distance).
         mask: bool (H, W): only these pixels (in C order); default all.
 
     Returns:
@@ -255,6 +256,13 @@ def near_field(directions: np.ndarray, light_distance: float | np.ndarray,
         image's centre).
     """
     check_distance(light_distance, shape, "light_distance")
+    return pixel_light_field(directions, light_distance, shape, mask)
+
+
+def pixel_light_field(directions: np.ndarray, light_distance: float | np.ndarray,
+                      shape: tuple[int, int], mask: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`near_field` of a distance already checked for the image."""
     rig = LightRig(directions, light_distance)
     if rig.is_distant:
         return None

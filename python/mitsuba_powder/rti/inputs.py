@@ -1,68 +1,94 @@
-"""The checked inputs of a per-pixel RTI fit (:class:`FitData`, :func:`set_up`): images,
-lights, free and held properties, options, the pixels to fit and their observations."""
+"""The checked inputs of a per-pixel RTI fit: the capture (images, lights, mask) and the held
+properties, checked once against the fit's options (:func:`check_inputs` ->
+:class:`FitInputs`), and the data of a set of its pixels (:meth:`FitInputs.pixels` ->
+:class:`FitData`), which every stage of the fit (:mod:`mitsuba_powder.rti.plan`) takes without
+checking again."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .checks import check_count, check_directions, check_gains, check_images, check_range
-from .forward import near_field
-from .gains import GainOptions
-from .properties import (
-    FREE_PROPERTIES,
-    GRAIN_MAPS,
-    MAP_DEFAULT_FREE,
-    MAP_PROPERTIES,
-    GrainAlbedo,
-    grain_map_name,
-    property_map,
-)
+from .checks import check_directions, check_gains, check_images
+from .forward import pixel_light_field
+from .lights import check_distance
+from .options import FitOptions
+from .pixels import PixelData
+from .properties import MAP_PROPERTIES, GrainAlbedo, property_map
 
-__all__ = ["GAIN_MODES", "SOLVERS", "FitData", "check_free", "check_mask", "check_options",
-           "set_up"]
-
-#: Gain modes of :func:`~mitsuba_powder.rti.fit.fit_maps`
-GAIN_MODES = ("fit", "fixed")
-
-#: Per-pixel solvers of :func:`~mitsuba_powder.rti.fit.fit_maps`: the Dr.Jit engine
-#: (:mod:`mitsuba_powder.rti.engine`) and the NumPy reference
-#: (:func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`)
-SOLVERS = ("drjit", "numpy")
+__all__ = ["FitData", "FitInputs", "check_inputs", "check_mask"]
 
 
+@dataclass(frozen=True, eq=False)
+class FitInputs:
+    """A capture and held properties checked for a fit with :attr:`options`.
 
-@dataclass
+    Attributes:
+        images: (K, H, W, 3) float32 linear values.
+        d: (K, 3) unit vectors towards the lights.
+        mask: (H, W) bool, the pixels to fit.
+        gains: (K,) the initial gains (:attr:`GainPolicy.initial
+            <mitsuba_powder.rti.gains.GainPolicy.initial>`, default 1).
+        maps: held float property of :data:`MAP_PROPERTIES` -> float64 (H, W).
+        albedo: (H, W, 3) the held albedo, or None (free, or set by the grains).
+        size: (H, W) the held grain size whose grains set the albedo, or None.
+        grain: the albedo of the grains of a free or held grain size, or None.
+        options: the fit's options.
+    """
+
+    images: np.ndarray
+    d: np.ndarray
+    mask: np.ndarray
+    gains: np.ndarray
+    maps: dict[str, np.ndarray]
+    albedo: np.ndarray | None
+    size: np.ndarray | None
+    grain: GrainAlbedo | None
+    options: FitOptions
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) pixels."""
+        return self.mask.shape
+
+    def pixels(self, sel: np.ndarray, gains: np.ndarray, light_distance: float | np.ndarray,
+               options: FitOptions) -> FitData:
+        """The data of the pixels ``sel`` (bool (H, W), a subset of :attr:`mask`) under the
+        ``gains`` (K,) and lights at ``light_distance`` (checked), with ``options`` (the
+        stage's: :attr:`options` with the gain policy it fits with)."""
+        obs = np.ascontiguousarray(self.images[:, sel].transpose(1, 0, 2), dtype=np.float32)
+        if self.size is not None:
+            fixed_albedo = self.grain(self.size[sel])[0]
+        else:
+            fixed_albedo = None if self.albedo is None else self.albedo[sel]
+        return FitData(obs=obs, d=self.d, mask=sel, gains=gains,
+                       fixed_maps={n: v[sel] for n, v in self.maps.items()},
+                       fixed_albedo=fixed_albedo, grain=self.grain, options=options,
+                       field=pixel_light_field(self.d, light_distance, self.shape, sel),
+                       light_distance=light_distance)
+
+
+@dataclass(eq=False)
 class FitData:
-    """The checked inputs of a fit, restricted to the masked pixels (P of them)."""
+    """The data of a set of P pixels of a capture, as one stage of a fit fits them."""
 
     obs: np.ndarray                    # (P, K, 3) float32 observations
     d: np.ndarray                      # (K, 3) unit vectors towards the lights
-    mask: np.ndarray                   # (H, W) bool, the fitted pixels (P of them)
-    free: list[str]                    # the free properties (besides the normal)
-    others: list[str]                  # the free ones that are neither albedo nor grain size
-    grain_name: str                    # the per-pixel grain size of the settings
-    grain: GrainAlbedo | None          # the albedo of a free or fixed grain size
-    fixed: dict                        # the held properties as given
+    mask: np.ndarray                   # (H, W) bool, the pixels (P of them)
+    gains: np.ndarray                  # (K,) initial gains (their mean: a calibration)
     fixed_maps: dict[str, np.ndarray]  # held per-pixel float property -> (P,)
     fixed_albedo: np.ndarray | None    # (P, 3) when neither the albedo nor a grain size is free
-    settings: dict                     # plugin properties held for every pixel
-    gains: np.ndarray                  # (K,) initial gains
-    scale: float                       # their mean: a calibration, not fitted
-    gain_mode: str
-    max_iterations: int
-    rounds: int
-    saturation: float
-    shadow_ratio: float
-    shadow_floor: float
-    max_lanes: int
-    gain_model: GainOptions = GainOptions()
-    solver: str = "drjit"
+    grain: GrainAlbedo | None          # the albedo of a free or fixed grain size
+    options: FitOptions                # the stage's options
     field: tuple[np.ndarray, np.ndarray] | None = None  # near-field lights: (P, K, 3), (P, K)
     light_distance: float | np.ndarray = math.inf        # r in image widths
+
+    @property
+    def scale(self) -> float:
+        """The mean of the initial gains, held while the gains are fitted (a calibration)."""
+        return float(np.mean(self.gains))
 
     def lights(self, s: slice = slice(None)) -> np.ndarray:
         """The light directions of the pixels ``s``: (K, 3), or (P_s, K, 3) per pixel."""
@@ -81,7 +107,7 @@ class FitData:
     @property
     def saturated(self) -> np.ndarray:
         """(P, K): observations with a channel at or above the saturation level."""
-        return np.any(self.obs >= self.saturation, axis=2)
+        return np.any(self.obs >= self.options.saturation, axis=2)
 
     def flags(self, predicted: np.ndarray) -> np.ndarray:
         """Weights (P, K): 0 where saturated or where the observed channel mean is below the
@@ -89,43 +115,50 @@ class FitData:
         shadow_floor)``."""
         obs = self.obs.mean(axis=2)
         pred = predicted.mean(axis=2)
-        shadow = (pred - obs) > np.maximum(self.shadow_ratio * pred, self.shadow_floor)
+        shadow = (pred - obs) > np.maximum(self.options.shadow_ratio * pred,
+                                           self.options.shadow_floor)
         return (~self.saturated & ~shadow).astype(np.float64)
 
-
-def check_free(free: Sequence[str] | None) -> list[str]:
-    """The free properties (default :data:`MAP_DEFAULT_FREE`), checked."""
-    free = list(MAP_DEFAULT_FREE if free is None else free)
-    for name in free:
-        if name not in FREE_PROPERTIES:
-            raise ValueError(f"free property {name!r} is not fittable per pixel; choose among "
-                             f"{list(FREE_PROPERTIES)}")
-    if len(set(free)) != len(free):
-        raise ValueError(f"free = {free} names a property twice")
-    n_par = 2 + sum(3 if n == "albedo" else 1 for n in free)
-    if n_par > 10:
-        raise ValueError(f"free = {free} gives {n_par} numbers per pixel; valid range is at "
-                         "most 10 (normal 2 + albedo 3 + 5)")
-    return free
+    def pixel_data(self, s: slice, weights: np.ndarray, gains: np.ndarray, layout: list
+                   ) -> PixelData:
+        """What a per-pixel solver takes of the pixels ``s`` (with the fit's ``weights``
+        (P, K) and ``gains`` (K,), the variables ``layout``)."""
+        return PixelData(self.obs[s], weights[s], self.lights(s), gains, layout,
+                         {n: v[s] for n, v in self.fixed_maps.items()},
+                         None if self.fixed_albedo is None else self.fixed_albedo[s],
+                         self.grain, self.irradiance(s))
 
 
-def check_options(gains: str, max_iterations: int, rounds: int, saturation: float,
-                   shadow_ratio: float, shadow_floor: float, max_lanes: int,
-                   solver: str = "drjit") -> dict:
-    """The fit's scalar options, checked, by :class:`_FitData` field name."""
-    if gains not in GAIN_MODES:
-        raise ValueError(f"gains = {gains!r} is not a gain mode; choose one of {GAIN_MODES}")
-    if solver not in SOLVERS:
-        raise ValueError(f"solver = {solver!r} is not a solver; choose one of {SOLVERS}")
-    return {"gain_mode": gains, "solver": solver,
-            "max_iterations": check_count("max_iterations", max_iterations, 1),
-            "rounds": check_count("rounds", rounds, 1),
-            "saturation": check_range("saturation", saturation, 0.0, math.inf,
-                                      open_lower=True),
-            "shadow_ratio": check_range("shadow_ratio", shadow_ratio, 0.0, 1.0,
-                                        open_lower=True),
-            "shadow_floor": check_range("shadow_floor", shadow_floor, 0.0, math.inf),
-            "max_lanes": check_count("max_lanes", max_lanes, 1)}
+def check_inputs(images: np.ndarray, directions: np.ndarray, options: FitOptions,
+                 mask: np.ndarray | None = None) -> FitInputs:
+    """Check a capture and the held properties against the fit's ``options``, once.
+
+    Args:
+        images: (K, H, W, 3) linear pixel values, 1.0 = the encoding's maximum.
+        directions: (K, 3) vectors towards the lights (image frame; normalised here).
+        options: the fit's options (:func:`~mitsuba_powder.rti.options.fit_options`).
+        mask: bool (H, W) pixels to fit (default all).
+
+    Raises:
+        ValueError: naming the input, its value and what was expected.
+    """
+    imgs = check_images(images)
+    k, h, w, _ = imgs.shape
+    d = check_directions(directions)
+    if len(d) != k:
+        raise ValueError(f"directions has {len(d)} rows for {k} images; expected one per image")
+    gains = check_gains(options.gains.initial, k)
+    mask = check_mask(mask, (h, w))
+    fixed = options.fixed
+    maps = {n: property_map(n, v, (h, w)) for n, v in fixed.items() if n in MAP_PROPERTIES}
+    grain = GrainAlbedo(options.grain_name, options.settings) if options.albedo_from_grains \
+        else None
+    size = property_map(options.grain_name, fixed[options.grain_name], (h, w)) \
+        if grain is not None and options.grain_name in fixed else None
+    albedo = _held_albedo(fixed["albedo"], (h, w)) if "albedo" in fixed else None
+    if not isinstance(options.light_distance, str):
+        check_distance(options.light_distance, (h, w), options.name("light_distance"))
+    return FitInputs(imgs, d, mask, gains, maps, albedo, size, grain, options)
 
 
 def check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
@@ -141,81 +174,13 @@ def check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
     return mask
 
 
-def _fixed_albedo(fixed: Mapping, free: Sequence[str], grain_name: str,
-                  grain: GrainAlbedo | None, mask: np.ndarray) -> np.ndarray | None:
-    """The held albedo of the masked pixels (P, 3): a fixed grain size's, or the fixed albedo;
-    None when the albedo or the grain size is free."""
-    shape = mask.shape
-    if grain is not None and grain_name in fixed:
-        return grain(property_map(grain_name, fixed[grain_name], shape)[mask])[0]
-    if "albedo" in free or grain_name in free:
-        return None
-    if "albedo" not in fixed:
-        raise ValueError(f"albedo is neither free nor fixed; give fixed={{'albedo': ...}} "
-                         f"or free (or fix) the grain size {grain_name}")
-    a = np.asarray(fixed["albedo"], dtype=np.float64)
+def _held_albedo(value, shape: tuple[int, int]) -> np.ndarray:
+    """A held albedo, (3,) or (H, W, 3), as float64 (H, W, 3) in [0, 1]."""
+    a = np.asarray(value, dtype=np.float64)
     a = np.broadcast_to(a, shape + (3,)) if a.shape == (3,) else a
     if a.shape != shape + (3,):
         raise ValueError(f"fixed albedo has shape {a.shape}; expected (3,) or "
                          f"({shape[0]}, {shape[1]}, 3)")
     for c in range(3):
         property_map("albedo", a[..., c], shape)
-    return a[mask]
-
-
-def _held(fixed: Mapping | None, free: list[str], mask: np.ndarray) -> dict:
-    """The held properties, checked against the free ones, by :class:`_FitData` field name:
-    ``fixed``, ``fixed_maps``, ``grain_name``, ``settings``, ``grain``, ``fixed_albedo``."""
-    fixed = dict(fixed or {})
-    for name in free:
-        if name in fixed:
-            raise ValueError(f"property {name!r} is both free and fixed")
-    fixed_maps = {n: property_map(n, v, mask.shape)[mask] for n, v in fixed.items()
-                  if n in MAP_PROPERTIES}
-    grain_name = grain_map_name(fixed)
-    wrong = [n for n in GRAIN_MAPS if n in free and n != grain_name]
-    if wrong:
-        raise ValueError(f"{wrong[0]} cannot be free with grains = "
-                         f"{fixed.get('grains', 'sphere')!r}; free {grain_name} instead")
-    settings = {n: v for n, v in fixed.items()
-                if n not in MAP_PROPERTIES and n != "albedo" and n != grain_name}
-    grain = None
-    if grain_name in free or grain_name in fixed:
-        if "albedo" in free or "albedo" in fixed:
-            raise ValueError(f"albedo and {grain_name} cannot both be given: the grains set the "
-                             "albedo per pixel; free or fix one of them")
-        grain = GrainAlbedo(grain_name, settings)
-    return {"fixed": fixed, "fixed_maps": fixed_maps, "grain_name": grain_name,
-            "settings": settings, "grain": grain,
-            "fixed_albedo": _fixed_albedo(fixed, free, grain_name, grain, mask)}
-
-
-def set_up(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | None,
-            mask: np.ndarray | None, fixed: Mapping | None, initial_gains: np.ndarray | None,
-            options: Mapping, light_distance: float | np.ndarray = math.inf,
-            pixels: np.ndarray | bool | None = None) -> FitData:
-    """Check every input of :func:`~mitsuba_powder.rti.fit.fit_maps` (in the order of its
-    arguments) and gather the observations of the masked pixels, or of ``pixels`` (bool
-    (H, W), a subset of the mask: a block), or of none (``pixels=False``: a plan, whose
-    ``mask`` is the whole mask)."""
-    imgs = check_images(images)
-    k, h, w, _ = imgs.shape
-    d = check_directions(directions)
-    if len(d) != k:
-        raise ValueError(f"directions has {len(d)} rows for {k} images; expected one per image")
-    free = check_free(free)
-    checked = check_options(**options)
-    g = check_gains(initial_gains, k)
-    mask = check_mask(mask, (h, w))
-    if pixels is False:
-        sel = np.zeros_like(mask)
-    else:
-        sel = mask if pixels is None else mask & pixels
-        mask = sel
-    held = _held(fixed, free, sel)
-    others = [n for n in free if n != "albedo" and n not in GRAIN_MAPS]
-    obs = np.ascontiguousarray(imgs[:, sel].transpose(1, 0, 2), dtype=np.float32)
-    return FitData(obs=obs, d=d, mask=mask, free=free, others=others, gains=g,
-                    scale=float(np.mean(g)), **held, **checked,
-                    field=near_field(d, light_distance, (h, w), sel),
-                    light_distance=light_distance)
+    return a

@@ -1,18 +1,21 @@
-"""The least-squares problems of the per-pixel RTI fit: every pixel's (:class:`PixelProblem`,
-for :func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`) and the per-light gains' with
-every pixel's variables eliminated (:func:`gain_system`, :func:`gain_step`)."""
+"""The NumPy reference solver of the per-pixel RTI fit (:class:`NumpySolver`, ``solver =
+"numpy"`` of :data:`mitsuba_powder.rti.solvers.SOLVERS`): every pixel's least-squares problem
+(:class:`PixelProblem`) for :func:`mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`,
+which assembles every pixel's (lights x channels x variables) Jacobian in NumPy."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
 
 import numpy as np
 
-from ..fitting.optimise import ParamSpec
+from ..fitting.optimise import batch_levenberg_marquardt
 from .forward import PixelEvaluator
-from .properties import GRAIN_MAPS, GrainAlbedo
+from .gains import gain_system
+from .pixels import PixelData, SolverFit
+from .properties import GRAIN_MAPS
 
-__all__ = ["PixelProblem", "gain_step", "gain_system"]
+__all__ = ["NumpySolver", "PixelProblem"]
 
 
 class PixelProblem:
@@ -25,23 +28,20 @@ class PixelProblem:
     p under light k is then ``g_k s_pk f(d_pk) (n . d_pk)``).
     """
 
-    def __init__(self, ev: PixelEvaluator, observed: np.ndarray, weights: np.ndarray,
-                 directions: np.ndarray, gains: np.ndarray, layout: list[tuple[str, ParamSpec]],
-                 fixed: Mapping[str, np.ndarray], fixed_albedo: np.ndarray | None = None,
-                 grain: GrainAlbedo | None = None, irradiance: np.ndarray | None = None):
+    def __init__(self, ev: PixelEvaluator, data: PixelData):
         self.ev = ev
-        self.grain = grain                  # the albedo from a free grain size
-        self.fixed_albedo = fixed_albedo    # (P, 3) when the albedo is not free
-        self.observed = observed            # (P, K, 3) float64
-        self.sqrt_w = np.sqrt(weights)      # (P, K)
-        self.directions = directions        # (K, 3), or (P, K, 3) per pixel
-        self.irradiance = irradiance        # None (distant lights) or (P, K)
-        self.gains = gains
-        self.layout = layout                # variable name and spec, in column order
-        self.fixed = fixed                  # non-free varying property -> (P,)
-        p = len(observed)
-        self.lower = np.array([s.to_y(s.lower) for _, s in layout] + [0.0])
-        self.upper = np.array([s.to_y(s.upper) for _, s in layout] + [max(p - 1, 0)])
+        self.grain = data.grain                # the albedo from a free grain size
+        self.fixed_albedo = data.fixed_albedo  # (P, 3) when the albedo is not free
+        self.observed = data.observed          # (P, K, 3)
+        self.sqrt_w = np.sqrt(data.weights)    # (P, K)
+        self.directions = data.directions      # (K, 3), or (P, K, 3) per pixel
+        self.irradiance = data.irradiance      # None (distant lights) or (P, K)
+        self.gains = data.gains
+        self.layout = list(data.layout)        # variable name and spec, in column order
+        self.fixed = data.fixed                # non-free varying property -> (P,)
+        p = len(self.observed)
+        self.lower = np.array([s.to_y(s.lower) for _, s in self.layout] + [0.0])
+        self.upper = np.array([s.to_y(s.upper) for _, s in self.layout] + [max(p - 1, 0)])
         self.evaluations = 0
 
     def unpack(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
@@ -114,41 +114,47 @@ class PixelProblem:
         return self._residual(idx, value), jac.reshape(b, k * 3, -1)
 
 
-def gain_system(res: np.ndarray, jac: np.ndarray, model: np.ndarray, sqrt_w: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels' part of the Gauss-Newton system of the gains with every pixel's variables
-    eliminated (Schur complement): ``S = sum_p (D_p - C_p^T A_p^-1 C_p)``,
-    ``b = sum_p (J_g^T r - C_p^T A_p^-1 J_p^T r)``.
+class NumpySolver:
+    """The per-pixel solver in NumPy (:data:`mitsuba_powder.rti.solvers.SOLVERS` ``numpy``):
+    :func:`~mitsuba_powder.fitting.optimise.batch_levenberg_marquardt` on a
+    :class:`PixelProblem`, every pixel at once; the test reference of the Dr.Jit solver."""
 
-    Args:
-        res: (B, K * 3) weighted residuals; jac: (B, K * 3, q) their Jacobian in the pixels'
-            variables; model: (B, K, 3) model values without gain; sqrt_w: (B, K) weights.
-    """
-    b, n, q = jac.shape
-    kk = model.shape[1]
-    jg = (sqrt_w[:, :, None] * model)                                  # (B, K, 3)
-    jp = jac.reshape(b, kk, 3, q)
-    r = res.reshape(b, kk, 3)
-    a = np.matmul(jac.transpose(0, 2, 1), jac)  # (B, q, q); matmul: BLAS, faster than einsum
-    a += (1e-9 * np.max(np.einsum("bii->bi", a), axis=1) + 1e-30)[:, None, None] * np.eye(q)
-    c = np.einsum("bkci,bkc->bik", jp, jg)                             # (B, q, K)
-    a_inv_c = np.linalg.solve(a, c)
-    jtr = np.matmul(jac.transpose(0, 2, 1), res[:, :, None])[:, :, 0]  # (B, q)
-    a_inv_jtr = np.linalg.solve(a, jtr[:, :, None])[:, :, 0]
-    s = np.diag(np.einsum("bkc,bkc->k", jg, jg)) - np.einsum("bik,bil->kl", c, a_inv_c)
-    rhs = np.einsum("bkc,bkc->k", jg, r) - np.einsum("bik,bi->k", c, a_inv_jtr)
-    return s, rhs
+    def __init__(self, ev: PixelEvaluator, data: PixelData):
+        self.problem = PixelProblem(ev, data)
 
+    @property
+    def evaluations(self) -> int:
+        """Model evaluations so far (one per residual, 1 + one per variable group per
+        Jacobian)."""
+        return self.problem.evaluations
 
-def gain_step(gains: np.ndarray, s: np.ndarray, rhs: np.ndarray, scale: float) -> np.ndarray:
-    """Gauss-Newton step of the gains on their reduced system with their mean held at
-    ``scale`` (the constraint ``sum(step) = K scale - sum(gains)`` by a Lagrange multiplier),
-    kept positive."""
-    k = len(gains)
-    diag = np.maximum(np.diag(s), 1e-30)
-    kkt = np.zeros((k + 1, k + 1))
-    kkt[:k, :k] = s + 1e-9 * np.diag(diag)
-    kkt[:k, k] = kkt[k, :k] = 1.0
-    step = np.linalg.solve(kkt, np.append(-rhs, k * scale - np.sum(gains)))[:k]
-    new = np.maximum(gains + step, 0.5 * gains)
-    return new * (scale / np.mean(new))
+    def solve(self, y_start: np.ndarray, max_iterations: int) -> SolverFit:
+        """Levenberg-Marquardt from ``y_start`` (P, n + 1; the last column, the pixel's index,
+        is held) with no hopeless test (pixels are not competing starts)."""
+        y = np.array(y_start, dtype=np.float64)
+        y[:, -1] = np.arange(len(y))
+        hold = np.zeros(y.shape[1], dtype=bool)
+        hold[-1] = True
+        # hopeless = inf: inf x a zero cost, of a pixel with no used observation, is NaN and
+        # stops nothing: not a warning
+        with np.errstate(invalid="ignore"):
+            fitted = batch_levenberg_marquardt(self.problem, y, max_iterations, hold=hold,
+                                               hopeless=math.inf)
+        return SolverFit(fitted.y[:, :-1], fitted.cost, fitted.iterations)
+
+    def model(self, rows: np.ndarray, gain_terms: bool = False
+              ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """The model without gains (P, K, 3) float32 at ``rows`` (P, n) and, with
+        ``gain_terms``, the pixels' part of the gains' reduced system
+        (:func:`~mitsuba_powder.rti.gains.gain_system`)."""
+        prob = self.problem
+        y = np.column_stack([rows, np.arange(len(rows), dtype=np.float64)])
+        idx, slopes, albedo, values, _ = prob.unpack(y)
+        res, jac = prob.jacobian(y) if gain_terms else (None, None)
+        value = np.ascontiguousarray(prob.ev(slopes, albedo, values, prob.lights(idx))[0],
+                                     dtype=np.float32)
+        if not gain_terms:
+            return value, None
+        # d(residual)/d(g_k) = sqrt(w) s_pk f: the model times the irradiance factors
+        model = value if prob.irradiance is None else value * prob.irradiance[idx][:, :, None]
+        return value, gain_system(res, jac[:, :, :-1], model, prob.sqrt_w)

@@ -8,13 +8,14 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from .._checks import out_of_range
 from ..fitting.fit import FITTABLE
 from ..fitting.optimise import ParamSpec
 from ..plugin import registry
 
-__all__ = ["FREE_PROPERTIES", "GRAIN_MAPS", "GrainAlbedo", "MAP_DEFAULT_FREE",
-           "MAP_GRAIN_SETTINGS", "MAP_PROPERTIES", "SLOPE_LIMIT", "SPECS", "grain_map_name",
-           "property_map"]
+__all__ = ["ALBEDO_INTERVAL", "FREE_PROPERTIES", "GRAIN_MAPS", "GrainAlbedo",
+           "MAP_DEFAULT_FREE", "MAP_GRAIN_SETTINGS", "MAP_PROPERTIES", "SLOPE_LIMIT", "SPECS",
+           "grain_map_name", "property_map", "valid_range"]
 
 #: Float properties of the plugin that may vary per pixel (maps (H, W) or scalars)
 MAP_PROPERTIES = ("amplitude_volume", "g", "extinction", "tau_o", "thickness",
@@ -54,41 +55,36 @@ SPECS: dict[str, ParamSpec] = {
 MAP_GRAIN_SETTINGS = ("grains", "mixing", "agglomerate_fill", "agglomerate_radius", "radius",
                       "radius2", "fraction2")
 
-#: The plugin's valid ranges (lower, upper, lower open, upper open), docs/powder.md
-_PHYSICAL = {
-    "albedo": (0.0, 1.0, False, False),
-    "amplitude_volume": (0.0, math.inf, False, True),
-    "g": (-1.0, 1.0, True, True),
-    "extinction": (0.0, math.inf, True, True),
-    "tau_o": (0.0, math.inf, False, True),
-    "thickness": (0.0, math.inf, False, False),
-    "amplitude_surface": (0.0, math.inf, False, True),
-    "correlation_length": (0.0, math.inf, True, True),
-    "sigma": (0.0, math.pi / 2, True, False),
-    # per-pixel grain sizes: the range of GrainAlbedo's table (the fit's)
-    "radius": (FITTABLE["radius"].lower, FITTABLE["radius"].upper, False, False),
-    "agglomerate_radius": (FITTABLE["agglomerate_radius"].lower,
-                           FITTABLE["agglomerate_radius"].upper, False, False),
-}
+#: The single-scattering albedo of a channel: a probability, [0, 1] (docs/model.md; the
+#: plugin checks a given albedo texture against it, powder_textures.h)
+ALBEDO_INTERVAL = registry.Interval(0.0, 1.0, True, True)
+
+
+def valid_range(name: str) -> registry.Interval:
+    """The values a per-pixel property may take: the plugin's valid range
+    (:data:`mitsuba_powder.plugin.registry.INTERVALS`), the albedo's [0, 1], and for a
+    per-pixel grain size the range of :class:`GrainAlbedo`'s table (the fit's,
+    :data:`SPECS`)."""
+    if name in GRAIN_MAPS:
+        return registry.Interval(SPECS[name].lower, SPECS[name].upper, True, True)
+    if name == "albedo":
+        return ALBEDO_INTERVAL
+    return registry.INTERVALS[name]
 
 
 def property_map(name: str, value, shape: tuple[int, int]) -> np.ndarray:
     """A float property given as a scalar or an (H, W) map -> float64 (H, W), range-checked
-    against the plugin's valid range of the property."""
+    against the property's valid range (:func:`valid_range`)."""
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim == 0:
         arr = np.full(shape, float(arr))
     if arr.shape != shape:
         raise ValueError(f"{name} has shape {arr.shape}; expected a scalar or {shape}")
-    lower, upper, lo_open, hi_open = _PHYSICAL[name]
-    lo_ok = arr > lower if lo_open else arr >= lower
-    hi_ok = arr < upper if hi_open else arr <= upper
-    bad = ~(lo_ok & hi_ok) | np.isnan(arr)
+    valid = valid_range(name)
+    bad = ~valid.contains(arr)
     if np.any(bad):
         i, j = (int(x[0]) for x in np.nonzero(bad))
-        raise ValueError(f"{name}[{i}, {j}] = {float(arr[i, j])!r} is out of range; valid "
-                         "range is "
-                         f"{'(' if lo_open else '['}{lower:g}, {upper:g}{')' if hi_open else ']'}")
+        raise ValueError(out_of_range(f"{name}[{i}, {j}] = {float(arr[i, j])!r}", str(valid)))
     return arr
 
 

@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 
-from .checks import check_count, check_gains, check_range
+from .._checks import check_range
+from .checks import check_count, check_gains
 from .forward import VARIANT, render_capture
 
 __all__ = ["SYNTHETIC_GRAIN_REGIONS", "SYNTHETIC_REGIONS", "SYNTHETIC_REGION_SETS",
@@ -53,8 +54,8 @@ def dome_directions(count: int = 40, min_elevation: float = 10.0, max_elevation:
     """``count`` light directions on a dome: a Fibonacci spiral in elevation between
     ``min_elevation`` and ``max_elevation`` (degrees, uniform in sin(elevation)), (count, 3)."""
     count = check_count("count", count, 1)
-    lo = check_range("min_elevation", min_elevation, 0.0, 90.0)
-    hi = check_range("max_elevation", max_elevation, lo, 90.0)
+    lo = check_range("min_elevation", min_elevation, 0.0, 90.0, "[]")
+    hi = check_range("max_elevation", max_elevation, lo, 90.0, "[]")
     i = np.arange(count) + 0.5
     s = np.sin(np.radians(lo)) + (np.sin(np.radians(hi)) - np.sin(np.radians(lo))) * i / count
     phi = i * math.pi * (3.0 - math.sqrt(5.0)) + 0.3 * seed
@@ -76,7 +77,7 @@ def synthetic_maps(height: int = 64, width: int = 64, relief: float = 0.25,
     """
     h = check_count("height", height, 2)
     w = check_count("width", width, 2)
-    relief = check_range("relief", relief, 0.0, 2.0)
+    relief = check_range("relief", relief, 0.0, 2.0, "[]")
     if regions not in SYNTHETIC_REGION_SETS:
         raise ValueError(f"regions = {regions!r} is not a region set; choose one of "
                          f"{list(SYNTHETIC_REGION_SETS)}")
@@ -137,9 +138,9 @@ def synthetic_capture(height: int = 64, width: int = 64, lights: int = 40,
         ``directions`` (K, 3), ``maps`` (the truth), ``region`` (H, W), ``gains`` (the
         irradiances used), ``noise``, and ``label = "SYNTHETIC"``.
     """
-    noise = check_range("noise", noise, 0.0, math.inf)
+    noise = check_range("noise", noise, 0.0, math.inf, "[]")
     if exposure is not None:
-        exposure = check_range("exposure", exposure, 0.0, math.inf, open_lower=True)
+        exposure = check_range("exposure", exposure, 0.0, math.inf, "(]")
     lights = check_count("lights", lights, 1)
     near = check_count("near_camera", near_camera, 0, lights)
     d = np.concatenate(([dome_directions(lights - near)] if lights > near else []) +

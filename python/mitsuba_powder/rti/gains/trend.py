@@ -51,10 +51,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lights import unit_directions
+from ..._checks import check_range, out_of_range
+from ..lights import unit_directions
 
-__all__ = ["GAIN_MODEL_MODES", "MAX_DEGREE", "GainModel", "GainOptions", "fit_gain_model",
-           "gain_basis"]
+__all__ = ["GAIN_MODEL_MODES", "MAX_AZIMUTH_ORDER", "MAX_DEGREE", "GainModel", "GainTrend",
+           "fit_gain_model", "gain_basis"]
 
 #: Highest polynomial degree in l_z (a dome has a handful of rings)
 MAX_DEGREE = 6
@@ -67,8 +68,7 @@ KIND = "mitsuba-powder gain model"
 def _order(name: str, value, upper: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or \
             not 0 <= value <= upper:
-        raise ValueError(f"{name} = {value!r} is out of range; valid range is the whole "
-                         f"numbers 0-{upper}")
+        raise ValueError(out_of_range(f"{name} = {value!r}", f"the whole numbers 0-{upper}"))
     return int(value)
 
 
@@ -163,7 +163,7 @@ class GainModel:
         constant term), e.g. to restore the gains' mean."""
         f = float(factor)
         if not (math.isfinite(f) and f > 0):
-            raise ValueError(f"factor = {factor!r} is out of range; valid range is (0, inf)")
+            raise ValueError(out_of_range(f"factor = {factor!r}", "(0, inf)"))
         c = self.coefficients.copy()
         c[0] += math.log(f)
         return GainModel(c, self.degree, self.azimuth_order, self.lz_range, self.strength,
@@ -204,12 +204,12 @@ class GainModel:
                              f"{degree + 1 + 2 * order} finite numbers")
         lo, hi = (float(v) for v in data["lz_range"])
         if not -1.0 <= lo <= hi <= 1.0:
-            raise ValueError(f"gain model: lz_range = {[lo, hi]} is out of range; valid range "
-                             "is -1 <= low <= high <= 1")
+            raise ValueError(out_of_range(f"gain model: lz_range = {[lo, hi]}",
+                                          "-1 <= low <= high <= 1"))
         strength = math.inf if data["strength"] is None else float(data["strength"])
         if not strength >= 0:
-            raise ValueError(f"gain model: strength = {data['strength']!r} is out of range; "
-                             "valid range is [0, inf] (None: inf)")
+            raise ValueError(out_of_range(f"gain model: strength = {data['strength']!r}",
+                                          "[0, inf]", "(None: inf)"))
         d = unit_directions(data["directions"], "gain model: directions")
         res = np.asarray(data["residuals"], dtype=np.float64)
         if res.shape != (len(d),) or not np.all(np.isfinite(res)):
@@ -242,36 +242,12 @@ def fit_gain_model(directions: np.ndarray, gains: np.ndarray, weights: np.ndarra
             too few distinct elevations for the degree, directions that do not determine the
             azimuthal terms.
     """
-    d = unit_directions(directions)
-    g = np.asarray(gains, dtype=np.float64)
-    if g.shape != (len(d),):
-        raise ValueError(f"gains has shape {g.shape}; expected ({len(d)},), one per direction")
-    if not np.all(np.isfinite(g) & (g > 0)):
-        k = int(np.flatnonzero(~(np.isfinite(g) & (g > 0)))[0])
-        raise ValueError(f"gains[{k}] = {float(g[k])!r} is out of range; valid range is (0, inf)")
-    w = np.ones(len(d)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (len(d),):
-        raise ValueError(f"weights has shape {w.shape}; expected ({len(d)},)")
-    if not np.all(np.isfinite(w) & (w >= 0)) or not np.any(w > 0):
-        raise ValueError(f"weights = {w.tolist()}: expected finite values >= 0, not all 0")
-    w = w / np.mean(w)
-    lam = float(strength)
-    if not lam >= 0:
-        raise ValueError(f"strength = {strength!r} is out of range; valid range is [0, inf]")
+    d, g, w, lam = _checked_data(directions, gains, weights, strength)
     used = w > 0
     t = d[used, 2]
     lz_range = (float(t.min()), float(t.max()))
     basis = gain_basis(d, degree, azimuth_order, lz_range)
-    n = basis.shape[1]
-    if used.sum() < n:
-        raise ValueError(f"a gain model of degree {degree} in lz and azimuth order "
-                         f"{azimuth_order} has {n} coefficients; {int(used.sum())} lights of "
-                         f"weight > 0 are too few (it needs >= {n})")
-    levels = np.unique(np.round(t, 6))
-    if len(levels) <= degree:
-        raise ValueError(f"degree = {degree} in lz needs lights at >= {degree + 1} distinct "
-                         f"elevations; the lights of weight > 0 have {len(levels)} (lz = "
-                         f"{', '.join(f'{v:.4g}' for v in levels)}); lower the degree")
+    _check_determined(basis, t, used, degree, azimuth_order)
     if math.isinf(lam):
         eff = w
     elif lam == 0:
@@ -282,12 +258,7 @@ def fit_gain_model(directions: np.ndarray, gains: np.ndarray, weights: np.ndarra
     a = basis[used] * np.sqrt(eff[used])[:, None]
     norms = np.linalg.norm(a, axis=0)
     scale = np.where(norms > 0, norms, 1.0)  # a zero column is caught by the rank test
-    sv = np.linalg.svd(a / scale, compute_uv=False)
-    if sv[-1] <= 1e-10 * sv[0]:
-        rank = int(np.sum(sv > 1e-10 * sv[0]))
-        raise ValueError(f"the {int(used.sum())} light directions determine only {rank} of the "
-                         f"{n} functions of the gain model (degree {degree}, azimuth order "
-                         f"{azimuth_order}); lower the degree or the azimuth order")
+    _check_rank(a / scale, int(used.sum()), degree, azimuth_order)
     c = np.linalg.lstsq(a / scale, y[used] * np.sqrt(eff[used]), rcond=None)[0] / scale
     r = y - basis @ c
     if math.isinf(lam):
@@ -295,6 +266,52 @@ def fit_gain_model(directions: np.ndarray, gains: np.ndarray, weights: np.ndarra
     else:
         delta = np.where(used, w * r / np.where(used, w + lam, 1.0), 0.0)
     return GainModel(c, int(degree), int(azimuth_order), lz_range, lam, d, delta)
+
+
+def _checked_data(directions: np.ndarray, gains: np.ndarray, weights: np.ndarray | None,
+                  strength: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """:func:`fit_gain_model`'s unit directions, gains, weights (mean 1) and strength."""
+    d = unit_directions(directions)
+    g = np.asarray(gains, dtype=np.float64)
+    if g.shape != (len(d),):
+        raise ValueError(f"gains has shape {g.shape}; expected ({len(d)},), one per direction")
+    if not np.all(np.isfinite(g) & (g > 0)):
+        k = int(np.flatnonzero(~(np.isfinite(g) & (g > 0)))[0])
+        raise ValueError(out_of_range(f"gains[{k}] = {float(g[k])!r}", "(0, inf)"))
+    w = np.ones(len(d)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(d),):
+        raise ValueError(f"weights has shape {w.shape}; expected ({len(d)},)")
+    if not np.all(np.isfinite(w) & (w >= 0)) or not np.any(w > 0):
+        raise ValueError(f"weights = {w.tolist()}: expected finite values >= 0, not all 0")
+    lam = float(strength)
+    if not lam >= 0:
+        raise ValueError(out_of_range(f"strength = {strength!r}", "[0, inf]"))
+    return d, g, w / np.mean(w), lam
+
+
+def _check_determined(basis: np.ndarray, lz: np.ndarray, used: np.ndarray, degree: int,
+                      azimuth_order: int) -> None:
+    """Enough lights of weight > 0 (``used``), at enough distinct elevations ``lz``."""
+    n = basis.shape[1]
+    if used.sum() < n:
+        raise ValueError(f"a gain model of degree {degree} in lz and azimuth order "
+                         f"{azimuth_order} has {n} coefficients; {int(used.sum())} lights of "
+                         f"weight > 0 are too few (it needs >= {n})")
+    levels = np.unique(np.round(lz, 6))
+    if len(levels) <= degree:
+        raise ValueError(f"degree = {degree} in lz needs lights at >= {degree + 1} distinct "
+                         f"elevations; the lights of weight > 0 have {len(levels)} (lz = "
+                         f"{', '.join(f'{v:.4g}' for v in levels)}); lower the degree")
+
+
+def _check_rank(a: np.ndarray, lights: int, degree: int, azimuth_order: int) -> None:
+    """The weighted, column-scaled design matrix ``a`` has full column rank."""
+    sv = np.linalg.svd(a, compute_uv=False)
+    if sv[-1] <= 1e-10 * sv[0]:
+        rank = int(np.sum(sv > 1e-10 * sv[0]))
+        raise ValueError(f"the {lights} light directions determine only {rank} of the "
+                         f"{a.shape[1]} functions of the gain model (degree {degree}, azimuth "
+                         f"order {azimuth_order}); lower the degree or the azimuth order")
 
 
 #: How the per-pixel fit uses the gain model: ``none`` (no model: a light not fitted has gain 1,
@@ -306,8 +323,9 @@ GAIN_MODEL_MODES = ("none", "free", "smooth")
 
 
 @dataclass(frozen=True)
-class GainOptions:
-    """How :func:`mitsuba_powder.rti.fit_maps` models its per-light gains.
+class GainTrend:
+    """How :func:`mitsuba_powder.rti.fit_maps` extends its fitted per-light gains to lights it
+    did not fit (and, ``smooth``, regularises them): the gains' trend in the light direction.
 
     Attributes:
         mode: ``none``, ``free`` or ``smooth`` (:data:`GAIN_MODEL_MODES`).
@@ -330,10 +348,9 @@ class GainOptions:
         _order("gain_degree", self.degree, MAX_DEGREE)
         _order("gain_azimuth_order", self.azimuth_order, MAX_AZIMUTH_ORDER)
         if self.spread is not None:
-            tau = float(self.spread)
-            if not (math.isfinite(tau) and tau > 0):
-                raise ValueError(f"gain_spread = {self.spread!r} is out of range; valid range "
-                                 "is (0, inf) (a relative spread, e.g. 0.02), or None")
+            tau = check_range("gain_spread", self.spread, 0.0, math.inf, "()",
+                              note="(a relative spread, e.g. 0.02), or None")
+            object.__setattr__(self, "spread", tau)
             if self.mode != "smooth":
                 raise ValueError(f"gain_spread = {self.spread!r} needs gain_model = 'smooth' "
                                  f"(it is {self.mode!r})")

@@ -1,0 +1,241 @@
+"""The options of a per-pixel RTI fit, checked once: :func:`fit_options` -> :class:`FitOptions`.
+
+:func:`~mitsuba_powder.rti.fit_maps` and the command ``fit-maps`` build the same frozen
+:class:`FitOptions`, here, before the capture is read; the fit's plan
+(:mod:`mitsuba_powder.rti.plan`) and the tiles (:mod:`mitsuba_powder.rti.tiles`) take it as it
+is. What can only be checked against the capture (its images and lights, the mask, per-pixel
+held maps, the initial gains' count, a light distance against the image's half-diagonal) is
+checked once by :func:`mitsuba_powder.rti.inputs.check_inputs`. Every message names an option
+as its caller does (``names``: the command line gives some of its flags).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .._checks import check_range
+from .blocks import check_memory, lanes_within
+from .checks import check_count
+from .forward import MAX_LANES, VARIANT, check_rgb_variant
+from .gains import GAIN_PIXELS, GainPolicy, gain_policy
+from .lights import parse_light_distance
+from .properties import (
+    FREE_PROPERTIES,
+    GRAIN_MAPS,
+    MAP_DEFAULT_FREE,
+    MAP_PROPERTIES,
+    grain_map_name,
+)
+from .solvers import SOLVERS
+
+__all__ = ["DEFAULTS", "FitOptions", "RENAMED", "check_free", "fit_options"]
+
+#: Every option of a fit and its default (:func:`fit_options`)
+DEFAULTS: dict[str, object] = {
+    "free": None, "fixed": None, "gains": "fit", "initial_gains": None, "gain_trend": None,
+    "gain_subsample": GAIN_PIXELS, "seed": 0, "light_distance": math.inf,
+    "max_iterations": 30, "rounds": 3, "saturation": 0.99, "shadow_ratio": 0.5,
+    "shadow_floor": 0.03, "solver": "drjit", "variant": VARIANT, "max_lanes": MAX_LANES,
+    "memory_gb": None,
+}
+
+#: Options renamed (old name -> new name): the old names work for one release, with a
+#: DeprecationWarning
+RENAMED = {"gain_model": "gain_trend", "gain_pixels": "gain_subsample"}
+
+
+@dataclass(frozen=True, eq=False)
+class FitOptions:
+    """The checked options of a per-pixel RTI fit (build them with :func:`fit_options`).
+
+    Attributes:
+        free: properties fitted per pixel besides the normal: ``albedo`` (3 channels), a grain
+            size of :data:`~mitsuba_powder.rti.properties.GRAIN_MAPS` instead of the albedo,
+            and any of :data:`~mitsuba_powder.rti.properties.MAP_PROPERTIES`; at most 10
+            numbers per pixel (normal 2 + albedo 3 + 5 more).
+        fixed: plugin properties held: numbers or (H, W) maps of
+            :data:`~mitsuba_powder.rti.properties.MAP_PROPERTIES` (not free), ``albedo`` as
+            (3,) or (H, W, 3) when not free, and settings (``lobes``, ``specular``,
+            ``material``, ``rgb_wavelengths``, ...). Their values are checked against the
+            capture (:func:`~mitsuba_powder.rti.inputs.check_inputs`).
+        gains: how the per-light gains are found (:class:`~mitsuba_powder.rti.gains.GainPolicy`:
+            fitted or held, their start, their trend, the subsample they are fitted on).
+        light_distance: the lights' distance from the image's centre in image widths
+            (:mod:`mitsuba_powder.rti.lights`): ``inf`` (distant lights), a number or (K,)
+            beyond the image's half-diagonal, or ``"fit"`` (the plan's ``distance scan``).
+        max_iterations: Levenberg-Marquardt iterations per round, >= 1.
+        rounds: alternations of the per-pixel fit with the gains (and the shadow flags), >= 1;
+            a final per-pixel fit follows the last gain update.
+        saturation: observations with any channel >= this are left out, in (0, inf].
+        shadow_ratio, shadow_floor: an observation is "shadowed" (left out) when its channel
+            mean is below the model's prediction by more than ``max(shadow_ratio x predicted,
+            shadow_floor)``; ratio in (0, 1], floor (linear units) >= 0.
+        solver: the per-pixel solver, a key of :data:`~mitsuba_powder.rti.solvers.SOLVERS`.
+        variant: an RGB variant (``llvm_ad_rgb``, ``cuda_ad_rgb``).
+        max_lanes: pixels x lights per plugin evaluation (and per optimiser batch) at most,
+            >= 1; lowered to the memory budget (:attr:`lanes`).
+        memory_gb: working memory of the fit besides the images, GiB, > 0 (pixels are fitted
+            in blocks that fit in it).
+        names: how messages name the options (e.g. ``{"memory_gb": "--memory-gb"}``).
+        given: the options as the caller gave them (before defaults), for the records.
+    """
+
+    free: tuple[str, ...]
+    fixed: dict
+    gains: GainPolicy
+    light_distance: float | np.ndarray | str
+    max_iterations: int
+    rounds: int
+    saturation: float
+    shadow_ratio: float
+    shadow_floor: float
+    solver: str
+    variant: str
+    max_lanes: int
+    memory_gb: float
+    names: dict = field(default_factory=dict)
+    given: dict = field(default_factory=dict)
+
+    def name(self, option: str) -> str:
+        """How messages name ``option``."""
+        return self.names.get(option, option)
+
+    def replace(self, **changes) -> FitOptions:
+        """These options with ``changes`` (values already checked, e.g. held gains)."""
+        return replace(self, **changes)
+
+    @property
+    def lanes(self) -> int:
+        """:attr:`max_lanes` within the memory budget
+        (:func:`~mitsuba_powder.rti.blocks.lanes_within`)."""
+        return lanes_within(self.memory_gb, self.max_lanes)
+
+    @property
+    def grain_name(self) -> str:
+        """The per-pixel grain size of the held settings (``radius`` or
+        ``agglomerate_radius``)."""
+        return grain_map_name(self.fixed)
+
+    @property
+    def others(self) -> list[str]:
+        """The free properties that are neither the albedo nor a grain size."""
+        return [n for n in self.free if n != "albedo" and n not in GRAIN_MAPS]
+
+    @property
+    def settings(self) -> dict:
+        """The plugin properties held for every pixel (not maps, albedo or the grain size)."""
+        return {n: v for n, v in self.fixed.items()
+                if n not in MAP_PROPERTIES and n != "albedo" and n != self.grain_name}
+
+    @property
+    def albedo_from_grains(self) -> bool:
+        """Whether the grains (a free or held grain size) set the albedo per pixel."""
+        return self.grain_name in self.free or self.grain_name in self.fixed
+
+
+def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
+    """The options of a fit (:data:`DEFAULTS`, meanings: :class:`FitOptions`), checked.
+
+    Args:
+        names: how messages name the options (default: their names here).
+        given: ``free``, ``fixed``, ``gains`` (``fit`` or ``fixed``), ``initial_gains`` ((K,)
+            start or held values, > 0), ``gain_trend`` (a
+            :class:`~mitsuba_powder.rti.gains.GainTrend`), ``gain_subsample`` (pixels the gains
+            are fitted on, >= 1, or None: every pixel), ``seed`` (of that subsample, >= 0),
+            ``light_distance``, ``max_iterations``, ``rounds``, ``saturation``,
+            ``shadow_ratio``, ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``,
+            ``memory_gb`` (None: :func:`~mitsuba_powder.rti.blocks.default_memory_gb`).
+
+    Raises:
+        ValueError: an unknown option or a value out of its range (named as ``names`` says).
+    """
+    names = dict(names or {})
+    given = _renamed(given, names)
+    unknown = sorted(set(given) - set(DEFAULTS))
+    if unknown:
+        raise ValueError(f"fit option(s) {unknown} are not fit_maps options; valid are "
+                         f"{sorted(DEFAULTS)}")
+    o = {**DEFAULTS, **given}
+
+    def name(option: str) -> str:
+        return names.get(option, option)
+
+    variant = check_rgb_variant(o["variant"])
+    free = check_free(o["free"], name("free"))
+    fixed = dict(o["fixed"] or {})
+    _check_held_names(free, fixed)
+    policy = gain_policy(o["gains"], o["initial_gains"], o["gain_trend"], o["gain_subsample"],
+                         o["seed"], name)
+    if o["solver"] not in SOLVERS:
+        raise ValueError(f"{name('solver')} = {o['solver']!r} is not a solver; choose one of "
+                         f"{tuple(SOLVERS)}")
+    return FitOptions(
+        free=tuple(free), fixed=fixed, gains=policy,
+        light_distance=parse_light_distance(o["light_distance"], name("light_distance")),
+        max_iterations=check_count(name("max_iterations"), o["max_iterations"], 1),
+        rounds=check_count(name("rounds"), o["rounds"], 1),
+        saturation=check_range(name("saturation"), o["saturation"], 0.0, math.inf, "(]"),
+        shadow_ratio=check_range(name("shadow_ratio"), o["shadow_ratio"], 0.0, 1.0, "(]"),
+        shadow_floor=check_range(name("shadow_floor"), o["shadow_floor"], 0.0, math.inf,
+                                 "[]"),
+        solver=o["solver"], variant=variant,
+        max_lanes=check_count(name("max_lanes"), o["max_lanes"], 1),
+        memory_gb=check_memory(o["memory_gb"], name("memory_gb")), names=names, given=given)
+
+
+def _renamed(given: dict, names: dict) -> dict:
+    """``given`` with the old names of :data:`RENAMED` replaced (a DeprecationWarning each);
+    messages then name the option as the caller did."""
+    out = dict(given)
+    for old, new in RENAMED.items():
+        if old not in out:
+            continue
+        if new in out:
+            raise ValueError(f"{old} and {new} are the same option ({old} is its old name); "
+                             f"give {new} only")
+        warnings.warn(f"fit option {old} is renamed {new}; the old name goes in the next "
+                      "release", DeprecationWarning, stacklevel=4)
+        out[new] = out.pop(old)
+        names.setdefault(new, names.get(old, old))
+    return out
+
+
+def check_free(free: Sequence[str] | None, name: str = "free") -> list[str]:
+    """The free properties (default :data:`MAP_DEFAULT_FREE`), checked."""
+    free = list(MAP_DEFAULT_FREE if free is None else free)
+    for prop in free:
+        if prop not in FREE_PROPERTIES:
+            raise ValueError(f"free property {prop!r} is not fittable per pixel; choose among "
+                             f"{list(FREE_PROPERTIES)}")
+    if len(set(free)) != len(free):
+        raise ValueError(f"{name} = {free} names a property twice")
+    n_par = 2 + sum(3 if n == "albedo" else 1 for n in free)
+    if n_par > 10:
+        raise ValueError(f"{name} = {free} gives {n_par} numbers per pixel; valid range is at "
+                         "most 10 (normal 2 + albedo 3 + 5)")
+    return free
+
+
+def _check_held_names(free: Sequence[str], fixed: Mapping) -> None:
+    """The free and held properties together: none both free and held, a free grain size that
+    is the grain model's, the albedo from the grains or free or held (exactly one)."""
+    for prop in free:
+        if prop in fixed:
+            raise ValueError(f"property {prop!r} is both free and fixed")
+    grain_name = grain_map_name(fixed)
+    wrong = [n for n in GRAIN_MAPS if n in free and n != grain_name]
+    if wrong:
+        raise ValueError(f"{wrong[0]} cannot be free with grains = "
+                         f"{fixed.get('grains', 'sphere')!r}; free {grain_name} instead")
+    grains = grain_name in free or grain_name in fixed
+    if grains and ("albedo" in free or "albedo" in fixed):
+        raise ValueError(f"albedo and {grain_name} cannot both be given: the grains set the "
+                         "albedo per pixel; free or fix one of them")
+    if not grains and "albedo" not in free and "albedo" not in fixed:
+        raise ValueError(f"albedo is neither free nor fixed; give fixed={{'albedo': ...}} "
+                         f"or free (or fix) the grain size {grain_name}")

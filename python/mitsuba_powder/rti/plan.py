@@ -1,0 +1,215 @@
+"""The plan of a per-pixel RTI fit: what is fitted, in which stages, run by small named steps.
+
+A fit is one :class:`~mitsuba_powder.rti.options.FitOptions` (checked once by
+:func:`~mitsuba_powder.rti.options.fit_options`) and one capture (checked once against them by
+:func:`~mitsuba_powder.rti.inputs.check_inputs`). :func:`make_plan` lists the stages they call
+for, in order; :func:`run_plan` runs them, each handing the next what it found
+(:class:`FitState`):
+
+1. ``distance scan`` (``light_distance="fit"``): one light distance for the whole dome, a
+   Lambertian scan of its inverse on a subsample of pixels spread over the mask, then a polish
+   with the powder fit of that subsample (:mod:`mitsuba_powder.rti.distance`);
+2. ``gain subsample`` (gains fitted, more masked pixels than the gain policy's subsample):
+   the maps and gains of a random subsample of the masked pixels, whose gains are then held
+   for every pixel (:mod:`mitsuba_powder.rti.gains`);
+3. ``blocks``: every masked pixel, in blocks within the memory budget (one block while the
+   gains are still fitted: they couple every pixel) (:mod:`mitsuba_powder.rti.blocks`).
+
+Every stage fits its pixels the same way (:func:`~mitsuba_powder.rti.pixelfit.fit_in_blocks`:
+the Lambertian start, rounds of the per-pixel solver alternated with the gains, the maps). A
+new stage (e.g. a scan of the exposure) is a step function ``(inputs, stage, state, log) ->
+state`` and a line in :func:`make_plan`. A tiled fit (:mod:`mitsuba_powder.rti.tiles`) fits the
+gains' subsample on its cluster and each tile with :func:`run_fit`, with the same options.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..variants import use_variant
+from .blocks import peak_memory_mib
+from .distance import polish_inverse_distance, scan_inverse_distance, subsample_mask
+from .inputs import FitInputs, check_inputs
+from .options import FitOptions
+from .pixelfit import Log, fit_in_blocks
+from .result import MapsResult
+
+__all__ = ["FitPlan", "FitState", "Stage", "fit_distance", "make_plan", "run_fit", "run_plan"]
+
+
+@dataclass
+class FitState:
+    """What the stages of a fit hand on: the light distance (found by the ``distance scan``
+    and its record ``scan``), the options the next stage fits with (the gains held after the
+    ``gain subsample``) and the gains, the subsample's fit (``held``) and the maps
+    (``result``)."""
+
+    light_distance: float | np.ndarray | str
+    options: FitOptions
+    gains: np.ndarray
+    scan: dict | None = None
+    held: MapsResult | None = None
+    result: MapsResult | None = None
+
+
+#: A step of a plan: (the checked inputs, its stage, the state so far, the log) -> the state
+Step = Callable[[FitInputs, "Stage", FitState, Log], FitState]
+
+
+@dataclass(frozen=True, eq=False)
+class Stage:
+    """A stage of a plan: its name, the pixels it fits (bool (H, W)) and its step."""
+
+    name: str
+    pixels: np.ndarray
+    step: Step
+
+
+@dataclass(frozen=True, eq=False)
+class FitPlan:
+    """A fit's checked inputs and its stages, in order."""
+
+    inputs: FitInputs
+    stages: tuple[Stage, ...]
+
+    def describe(self) -> list[str]:
+        """One line per stage: its name and how many pixels it fits."""
+        return [f"{s.name}: {int(s.pixels.sum())} pixels" for s in self.stages]
+
+
+def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
+              mask: np.ndarray | None = None) -> FitPlan:
+    """The stages of a fit of a capture (module docstring), its inputs checked once.
+
+    Args:
+        images: (K, H, W, 3) linear pixel values, 1.0 = the encoding's maximum.
+        directions: (K, 3) vectors towards the lights (image frame; normalised here).
+        options: the fit's options (:func:`~mitsuba_powder.rti.options.fit_options`).
+        mask: bool (H, W) pixels to fit (default all).
+    """
+    inputs = check_inputs(images, directions, options, mask)
+    stages = []
+    if isinstance(options.light_distance, str):  # "fit"
+        stages.append(Stage("distance scan", subsample_mask(inputs.mask), scan_distance))
+    policy = options.gains
+    if policy.subsampled(int(inputs.mask.sum())):
+        sub = np.zeros(inputs.mask.size, dtype=bool)
+        sub[policy.draw(inputs.mask)] = True
+        stages.append(Stage("gain subsample", sub.reshape(inputs.shape), fit_gain_subsample))
+    stages.append(Stage("blocks", inputs.mask, fit_blocks))
+    return FitPlan(inputs, tuple(stages))
+
+
+def run_plan(plan: FitPlan, progress: Callable[[str], None] | None = None) -> MapsResult:
+    """Run the stages of ``plan``; the maps of its last, with the fit's diagnostics.
+
+    Args:
+        plan: :func:`make_plan`'s.
+        progress: called with a line of text after each stage.
+    """
+    t0 = time.perf_counter()
+    log = Log(progress)
+    state = run_stages(plan, log)
+    return _finish(state, log, t0)
+
+
+def run_stages(plan: FitPlan, log: Log, names: tuple[str, ...] | None = None) -> FitState:
+    """The state after the stages of ``plan`` (those of ``names`` only, if given), in the
+    options' variant."""
+    inputs = plan.inputs
+    state = FitState(inputs.options.light_distance, inputs.options, inputs.gains)
+    with use_variant(inputs.options.variant):
+        for stage in plan.stages:
+            if names is None or stage.name in names:
+                state = stage.step(inputs, stage, state, log)
+    return state
+
+
+def run_fit(images: np.ndarray, directions: np.ndarray, options: FitOptions,
+            mask: np.ndarray | None = None, progress: Callable[[str], None] | None = None
+            ) -> MapsResult:
+    """:func:`make_plan` and :func:`run_plan`: the maps of a capture fitted with ``options``."""
+    return run_plan(make_plan(images, directions, options, mask), progress)
+
+
+def fit_distance(images: np.ndarray, directions: np.ndarray, options: FitOptions,
+                 mask: np.ndarray | None = None, progress: Callable[[str], None] | None = None
+                 ) -> tuple[float, dict]:
+    """The ``distance scan`` of a fit with ``options`` alone: r in image widths (``inf``
+    when distant lights fit best) and the scan's record."""
+    plan = make_plan(images, directions, options.replace(light_distance="fit"), mask)
+    state = run_stages(plan, Log(progress), ("distance scan",))
+    return state.light_distance, state.scan
+
+
+# ---------------------------------------------------------------------------
+#  Steps
+# ---------------------------------------------------------------------------
+
+def scan_distance(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
+    """Stage ``distance scan``: the Lambertian scan of u = 1/r on the stage's pixels, then
+    the powder fit's cost of those pixels polished over the scan's best bracket."""
+    sub = stage.pixels
+    data = inputs.pixels(sub, state.gains, math.inf, state.options)
+    wt = (~data.saturated).astype(np.float64)
+    us, costs = scan_inverse_distance(data.obs, wt, sub, data.d, data.gains)
+    log(f"light distance: Lambertian scan of u = 1/r on {int(sub.sum())} pixels, best "
+        f"u = {us[int(np.argmin(costs))]:.4g}")
+    del data
+
+    def cost(u: float) -> float:
+        r = math.inf if u <= 0 else 1.0 / u
+        part = fit_in_blocks(inputs, sub, state.options, state.gains, r, Log())
+        return float(np.nanmean(part.residual_rms[sub] ** 2))
+
+    u, seen = polish_inverse_distance(cost, us, costs)
+    r = math.inf if u <= 0 else 1.0 / u
+    log(f"light distance: polished with the powder fit ({len(seen)} fits), r = {r:.5g} "
+        "image widths")
+    scan = {"inverse_distance": us.tolist(), "cost": costs.tolist(),
+            "polish": [{"inverse_distance": a, "cost": b} for a, b in seen]}
+    return replace(state, light_distance=r, scan=scan)
+
+
+def fit_gain_subsample(inputs: FitInputs, stage: Stage, state: FitState, log: Log
+                       ) -> FitState:
+    """Stage ``gain subsample``: the maps and gains of the stage's pixels, gains fitted with
+    every one of them; the gains are then held (mode ``fixed``) for the next stages."""
+    policy = state.options.gains
+    part = fit_in_blocks(inputs, stage.pixels, state.options.replace(
+        gains=policy.on_subsample()), state.gains, state.light_distance, Log())
+    count = int(stage.pixels.sum())
+    part.fit_settings["gain_pixels"] = count
+    log(f"gains: fitted on {count} of {int(inputs.mask.sum())} pixels (seed {policy.seed}), "
+        f"range {np.min(part.gains):.4g}-{np.max(part.gains):.4g}, held for every pixel")
+    return replace(state, options=state.options.replace(gains=policy.held(part.gains)),
+                   gains=part.gains, held=part)
+
+
+def fit_blocks(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
+    """Stage ``blocks``: every pixel of the stage, in blocks within the memory budget."""
+    return replace(state, result=fit_in_blocks(inputs, stage.pixels, state.options,
+                                               state.gains, state.light_distance, log))
+
+
+def _finish(state: FitState, log: Log, t0: float) -> MapsResult:
+    """The last stage's maps with the fit's stages, memory and light distance recorded (and
+    the gains, their trend and their stages from the ``gain subsample``, if run)."""
+    result, held = state.result, state.held
+    r = state.light_distance
+    result.fit_settings.update(
+        seconds=time.perf_counter() - t0, stages=log.stages,
+        memory_gb=state.options.memory_gb, peak_memory_mib=peak_memory_mib(),
+        light_distance_source=("fitted" if state.scan is not None else "distant"
+                               if np.all(np.isinf(r)) else "given"),
+        light_distance_scan=state.scan)
+    if held is not None:
+        result.fit_settings.update(gains="fit", gain_pixels=held.fit_settings["gain_pixels"],
+                                   gain_stages=held.fit_settings["stages"])
+        result.gain_model = held.gain_model
+    return result
