@@ -66,6 +66,14 @@ def decide_convention(raw_geometries: list[tuple[float, float, float]], header: 
             "every azimuth is 0, which in the signed convention are views on the forward "
             "(specular) side (theta_o = -emergence) and in the physical convention views on "
             f"the light's side (theta_o = +emergence); {how}")
+    _check_convention(convention, em, az, az0, where)
+    return convention, reason
+
+
+def _check_convention(convention: str, em: np.ndarray, az: np.ndarray, az0: np.ndarray,
+                      where: list[str]) -> None:
+    """The emergences ``em`` and azimuths ``az`` (``az0``: azimuth 0) allowed by the chosen
+    convention: every azimuth 0 when signed, no negative emergence when physical."""
     if convention == "signed" and not az0.all():
         g = int(np.argmax(~az0))
         raise MeasurementError(f"{where[g]}: azimuth {az[g]:g}: the signed convention (older "
@@ -74,7 +82,6 @@ def decide_convention(raw_geometries: list[tuple[float, float, float]], header: 
         g = int(np.argmax(em < 0))
         raise MeasurementError(f"{where[g]}: emergence {em[g]:g} < 0: the physical convention "
                                "has emergences >= 0; use convention='signed'")
-    return convention, reason
 
 
 def to_project(incidence, emergence, azimuth, convention: str

@@ -153,6 +153,16 @@ def colour_of_spectrum(wavelengths_nm: np.ndarray, reflectance: np.ndarray
         colour.XYZ_to_Lab(xyz, white))
 
 
+def _visible_wavelengths(wavelengths_nm) -> np.ndarray:
+    """An increasing 1D array of at least 2 wavelengths within 360-830 nm, as float64."""
+    wl = np.asarray(wavelengths_nm, dtype=np.float64)
+    if wl.ndim != 1 or len(wl) < 2 or np.any(np.diff(wl) <= 0):
+        raise ValueError("wavelengths_nm must be an increasing 1D array of at least 2 values")
+    if wl[0] < 360.0 or wl[-1] > 830.0:
+        raise ValueError(f"wavelengths_nm spans {wl[0]}-{wl[-1]} nm; valid range is 360-830 nm")
+    return wl
+
+
 def powder_colour(
     radius: float = float(registry.DEFAULTS["radius"]),
     radius2: float | None = None,
@@ -180,13 +190,7 @@ def powder_colour(
     Raises:
         ValueError: inconsistent arguments; RuntimeError: the plugin rejected a property.
     """
-    wavelengths_nm = np.asarray(wavelengths_nm, dtype=np.float64)
-    if wavelengths_nm.ndim != 1 or len(wavelengths_nm) < 2 or np.any(np.diff(wavelengths_nm)
-                                                                       <= 0):
-        raise ValueError("wavelengths_nm must be an increasing 1D array of at least 2 values")
-    if wavelengths_nm[0] < 360.0 or wavelengths_nm[-1] > 830.0:
-        raise ValueError(f"wavelengths_nm spans {wavelengths_nm[0]}-{wavelengths_nm[-1]} nm; "
-                         "valid range is 360-830 nm")
+    wavelengths_nm = _visible_wavelengths(wavelengths_nm)
     if (radius2 is None) != (fraction2 is None):
         raise ValueError("give both radius2 and fraction2, or neither")
     check_range("samples", samples, 16)

@@ -38,7 +38,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .._checks import check_range
+from .._checks import check_range, out_of_range
 from ..io.measurements import Measurements, gonio_directions
 from ..variants import check_variant, use_variant
 
@@ -441,21 +441,14 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
     wi_all, wo_all = gonio_directions(ti, to, ph)
     channels = ["Y"] if mono else ["R", "G", "B"]
     n_c = len(channels)
-    rendered = np.empty((len(ti), n_c))
-    stderr = np.empty((len(ti), n_c))
-    analytic = np.empty((len(ti), n_c))
-    sensitivity = np.empty((len(ti), n_c))
-    seconds = 0.0
-    used: dict = {}
+    rendered, stderr, analytic, sensitivity = (np.empty((len(ti), n_c)) for _ in range(4))
+    seconds, used = 0.0, {}
     lam_key = np.nan_to_num(lam, nan=-1.0)  # NaN (no wavelength) != NaN in a set
     keys = sorted(set(zip(lam_key.tolist(), ti.tolist(), strict=True)))
     with use_variant(variant):
         for lam_k, ti_k in keys:
             idx = np.nonzero((ti == ti_k) & (lam_key == lam_k))[0]
-            props = dict(properties(lam_k) if callable(properties) else properties)
-            used[f"{lam_k:g}" if mono else "all"] = dict(props)
-            if mono:
-                props["wavelength"] = float(lam_k)
+            props = _properties_at(properties, lam_k, mono, used)
             wi = wi_all[idx[0]]
             pix, bsdf, took = _render_group(props, wi, wo_all[idx], integrator, source_radius,
                                             resolution, spp, seed, n_c)
@@ -472,6 +465,16 @@ def render_gonio(properties: dict, theta_i, theta_o, phi, *, wavelength=None,
                        used["all"] if "all" in used else used, sensitivity)
 
 
+def _properties_at(properties, lam: float, mono: bool, used: dict) -> dict:
+    """The plugin properties at the wavelength ``lam`` (nm; mono variants), recorded in
+    ``used`` (by wavelength, or ``all``)."""
+    props = dict(properties(lam) if callable(properties) else properties)
+    used[f"{lam:g}" if mono else "all"] = dict(props)
+    if mono:
+        props["wavelength"] = float(lam)
+    return props
+
+
 def _check_geometries(ti: np.ndarray, to: np.ndarray, ph: np.ndarray) -> None:
     """Equal-length, non-empty angle arrays (degrees) in the valid ranges."""
     if not (len(ti) == len(to) == len(ph)) or len(ti) == 0:
@@ -484,7 +487,7 @@ def _check_geometries(ti: np.ndarray, to: np.ndarray, ph: np.ndarray) -> None:
         if not ok.all():
             bad = float(values[~ok][0])
             valid = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if name == 'phi' else ')'}"
-            raise ValueError(f"{name} = {bad:g} degrees is out of range; valid range is {valid}")
+            raise ValueError(out_of_range(f"{name} = {bad:g} degrees", valid))
 
 
 def _wavelengths(wavelength, variant: str, shape: tuple) -> np.ndarray:

@@ -103,6 +103,37 @@ def _load_with_properties(scene: Path, properties: dict, defines: dict) -> tuple
     return loaded, list(properties), [], removed
 
 
+def _load(scene: Path, properties: dict | None, defines: dict[str, str]):
+    """(the loaded scene, the properties applied, those missing, the scene properties
+    removed) of ``scene`` with ``properties`` written into its powders (or set through
+    ``mi.traverse`` where the description defines none)."""
+    if not properties:
+        return mi.load_file(str(scene), **defines), [], [], []
+    loaded, applied, rest, removed = _load_with_properties(scene, properties, defines)
+    missing: list[str] = []
+    if rest:  # no powder BSDF in the file itself: set what traverse exposes
+        more, missing = apply_properties(loaded, {k: properties[k] for k in rest})
+        applied += more
+    return loaded, applied, missing, removed
+
+
+def _check_arguments(scene, output, variant: str, spp: int | None, properties: dict | None
+                     ) -> tuple[Path, Path]:
+    """:func:`render_scene`'s scene and output paths, its arguments checked."""
+    scene = Path(scene)
+    output = Path(output)
+    if not scene.is_file():
+        raise FileNotFoundError(f"scene file {scene} does not exist")
+    check_variant(variant)
+    if output.suffix.lower() not in (".exr", ".png", ".jpg", ".hdr", ".pfm"):
+        raise ValueError(f"output {output}: extension must be .exr, .png, .jpg, .hdr or .pfm")
+    if spp is not None:
+        check_range("spp", spp, 1)
+    if properties:
+        check_property_names(properties)
+    return scene, output
+
+
 def render_scene(
     scene: str | Path,
     output: str | Path,
@@ -139,32 +170,11 @@ def render_scene(
             (unless ``allow_missing``).
         RuntimeError: the variant's backend (CUDA, LLVM) cannot run here.
     """
-    scene = Path(scene)
-    output = Path(output)
-    if not scene.is_file():
-        raise FileNotFoundError(f"scene file {scene} does not exist")
-    check_variant(variant)
-    if output.suffix.lower() not in (".exr", ".png", ".jpg", ".hdr", ".pfm"):
-        raise ValueError(f"output {output}: extension must be .exr, .png, .jpg, .hdr or .pfm")
-    if spp is not None:
-        check_range("spp", spp, 1)
-    if properties:
-        check_property_names(properties)
-
+    scene, output = _check_arguments(scene, output, variant, spp, properties)
     with guarding_inputs(*scene_files(scene, defines)), use_variant(variant):
         output = output_file(output, "output")
         start = time.perf_counter()
-        if properties:
-            loaded, applied, rest, removed = _load_with_properties(scene, properties,
-                                                                   defines or {})
-            if rest:  # no powder BSDF in the file itself: set what traverse exposes
-                more, missing = apply_properties(loaded, {k: properties[k] for k in rest})
-                applied += more
-            else:
-                missing = []
-        else:
-            loaded = mi.load_file(str(scene), **(defines or {}))
-            applied, missing, removed = [], [], []
+        loaded, applied, missing, removed = _load(scene, properties, defines or {})
         if missing and not allow_missing:
             raise ValueError(
                 f"powder properties {', '.join(missing)} cannot be set on {scene}: the scene "
