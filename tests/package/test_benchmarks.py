@@ -62,10 +62,39 @@ def test_benchmark_quick_mode(script, quick_results):
         assert len(data["rows"]) == 6
         assert all(r["max_rel_difference"] < 1e-5 for r in data["rows"])
     if name == "ab":
-        # without --baseline the A/B compares the installed plugin with itself: a control
-        # whose values must be identical
+        # without --baseline the A/B times the installed plugin against itself (a control)
         assert data["meta"]["baseline"].startswith("installed")
-        assert all(r["max_rel_difference"] == 0.0 for r in data["rows"])
+        assert {r["variant"] for r in data["rows"]} == {"llvm_ad_rgb", "llvm_ad_spectral"}
+
+
+def test_ab_compares_the_baseline_build_it_is_given(tmp_path):
+    """bench_ab loads the --baseline file as a plugin of its own: a copy of the installed
+    build evaluates to the same values (differences 0), a file that is not a build of the
+    plugin stops the run (so the baseline is the file given, not the installed plugin)."""
+    import shutil
+
+    import mitsuba_powder
+
+    copy = tmp_path / "baseline" / "powder.so"
+    copy.parent.mkdir()
+    shutil.copy(mitsuba_powder.plugin_path(), copy)
+    out = tmp_path / "same"
+    proc = subprocess.run([sys.executable, str(BENCHMARKS_DIR / "bench_ab.py"), "--quick",
+                           "--baseline", str(copy), "--out", str(out)], capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    data = json.loads((out / "ab.json").read_text())
+    assert data["meta"]["baseline"] == str(copy)
+    assert len(data["rows"]) == 14
+    assert all(r["max_rel_difference"] == 0.0 for r in data["rows"])
+    broken = tmp_path / "broken" / "powder.so"
+    broken.parent.mkdir()
+    broken.write_bytes(b"not a shared library")
+    proc = subprocess.run([sys.executable, str(BENCHMARKS_DIR / "bench_ab.py"), "--quick",
+                           "--baseline", str(broken), "--out", str(tmp_path / "broken_out")],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode != 0 and "powder_baseline" in proc.stderr
+    assert not (tmp_path / "broken_out" / "ab.json").exists()
 
 
 @pytest.mark.parametrize("args, message", [
