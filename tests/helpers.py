@@ -442,3 +442,31 @@ def write_exr_capture(folder: Path, capture: dict) -> Path:
                        encoding="linear", file_format="exr", bit_depth=32)
     rti.write_images(like, capture["images"], names, folder)
     return folder / "dirs.lp"
+
+
+def lambertian_capture(shape: tuple[int, int], lights: int, r: float = float("inf"),
+                       tilt: float = 0.03, gains=None, seed: int = 3) -> dict:
+    """A SYNTHETIC Lambertian capture (no powder): normals tilted from z by about ``tilt``
+    (radians, per component), reflectances in [0.2, 0.9], ``lights`` dome lights at ``r``
+    image widths (``rti.dome_directions``), gains ``gains`` (default 1). Returns ``images``
+    (K, H, W, 3) ``E_k s_k max(n . d_k, 0) R / pi``, ``directions``, ``normals``,
+    ``reflectance``, the per-pixel light directions ``dirs`` (K, H, W, 3), irradiance
+    factors ``s`` (K, H, W), ``gains`` and ``cos`` (K, H, W) (n . d_k, unclamped)."""
+    import numpy as np
+
+    from mitsuba_powder import rti
+    from mitsuba_powder.rti.lights import LightRig, image_light_field
+
+    rng = np.random.default_rng(seed)
+    d = rti.dome_directions(lights)
+    n = rng.normal(scale=tilt, size=tuple(shape) + (3,))
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    refl = rng.uniform(0.2, 0.9, tuple(shape) + (3,))
+    g = np.ones(lights) if gains is None else np.asarray(gains, dtype=np.float64)
+    dirs, s = image_light_field(LightRig(d, r), shape)
+    cos = np.einsum("khwi,hwi->khw", dirs, n)
+    images = (np.maximum(cos, 0.0)[..., None] * refl[None] / np.pi
+              * (g[:, None, None] * s)[..., None])
+    return {"images": images, "directions": d, "normals": n, "reflectance": refl,
+            "dirs": dirs, "s": s, "gains": g, "cos": cos}

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-import mitsuba_powder.rti as rf
+from helpers import lambertian_capture
 from mitsuba_powder.rti.distance import (
     POLISH_EVALUATIONS,
     SCAN_POINTS,
@@ -17,7 +17,7 @@ from mitsuba_powder.rti.distance import (
     scan_inverse_distance,
     subsample_mask,
 )
-from mitsuba_powder.rti.lights import LightRig, half_diagonal, image_light_field
+from mitsuba_powder.rti.lights import half_diagonal
 
 
 def test_the_subsample_spreads_over_the_whole_mask():
@@ -33,17 +33,10 @@ def test_the_subsample_spreads_over_the_whole_mask():
 
 
 def _lambertian_capture(r: float, shape=(20, 24), lights: int = 30):
-    """Lambertian pixels (known normals and reflectances) lit from r image widths."""
-    rng = np.random.default_rng(1)
-    d = rf.dome_directions(lights)
-    n = rng.normal(scale=0.15, size=shape + (3,))
-    n[..., 2] = 1.0
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    refl = rng.uniform(0.3, 0.8, shape + (3,))
-    dirs, s = image_light_field(LightRig(d, r), shape)
-    cos = np.maximum(np.einsum("khwi,hwi->khw", dirs, n), 0.0)
-    images = cos[..., None] * refl[None] / np.pi * s[..., None]
-    return images.reshape(lights, -1, 3).transpose(1, 0, 2), d
+    """Lambertian pixels (known normals and reflectances) lit from r image widths, as
+    observations (P, K, 3), and the lights' directions."""
+    c = lambertian_capture(shape, lights, r, tilt=0.15, seed=1)
+    return c["images"].reshape(lights, -1, 3).transpose(1, 0, 2), c["directions"]
 
 
 def test_the_lambertian_scan_finds_the_distance_of_a_lambertian_capture():

@@ -11,9 +11,9 @@ import math
 import numpy as np
 
 import mitsuba_powder.rti as rf
+from helpers import lambertian_capture
 from mitsuba_powder.fitting.optimise import ParamSpec
 from mitsuba_powder.rti.forward import PixelEvaluator, slopes_of_normals
-from mitsuba_powder.rti.lights import LightRig, image_light_field
 from mitsuba_powder.rti.properties import SLOPE_LIMIT
 from mitsuba_powder.rti.starts import PixelStarts, lambertian_start
 
@@ -22,18 +22,10 @@ SLOPE = ParamSpec(-SLOPE_LIMIT, SLOPE_LIMIT, False, 0.0)
 
 
 def _lambertian(r: float = math.inf, gains=None):
-    rng = np.random.default_rng(3)
-    d = rf.dome_directions(LIGHTS)
-    n = rng.normal(scale=0.03, size=SHAPE + (3,))
-    n[..., 2] = 1.0
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    refl = rng.uniform(0.2, 0.9, SHAPE + (3,))
-    g = np.ones(LIGHTS) if gains is None else gains
-    dirs, s = image_light_field(LightRig(d, r), SHAPE)
-    cos = np.einsum("khwi,hwi->khw", dirs, n)
-    assert cos.min() > 0  # no attached shadow: photometric stereo is exact
-    images = cos[..., None] * refl[None] / np.pi * (g[:, None, None] * s)[..., None]
-    return images, d, n, refl, dirs, s, g
+    c = lambertian_capture(SHAPE, LIGHTS, r, gains=gains)
+    assert c["cos"].min() > 0  # no attached shadow: photometric stereo is exact
+    return (c["images"], c["directions"], c["normals"], c["reflectance"], c["dirs"], c["s"],
+            c["gains"])
 
 
 def test_photometric_stereo_is_exact_on_lambertian_pixels():

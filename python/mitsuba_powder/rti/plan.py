@@ -84,14 +84,8 @@ class FitPlan:
 
 def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
               mask: np.ndarray | None = None) -> FitPlan:
-    """The stages of a fit of a capture (module docstring), its inputs checked once.
-
-    Args:
-        images: (K, H, W, 3) linear pixel values, 1.0 = the encoding's maximum.
-        directions: (K, 3) vectors towards the lights (image frame; normalised here).
-        options: the fit's options (:func:`~mitsuba_powder.rti.options.fit_options`).
-        mask: bool (H, W) pixels to fit (default all).
-    """
+    """The stages of a fit of a capture (module docstring), its inputs (the arguments of
+    :func:`~mitsuba_powder.rti.inputs.check_inputs`) checked once."""
     inputs = check_inputs(images, directions, options, mask)
     stages = []
     if isinstance(options.light_distance, str):  # "fit"
