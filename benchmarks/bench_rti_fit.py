@@ -60,7 +60,7 @@ def _fit(path: Path, config: str, variant: str) -> dict:
         maps = {k[4:]: f[k] for k in f.files if k.startswith("map_")}
     fixed = {n: maps[n] for n in ("amplitude_volume", "g", "extinction")}
     options = ({"solver": "drjit"} if config == "drjit" else
-               {"solver": "numpy", "gain_pixels": None, "memory_gb": 1e3})
+               {"solver": "numpy", "gain_subsample": None, "memory_gb": 1e3})
     t0 = time.perf_counter()
     res = rf.fit_maps(images, directions, fixed=fixed, gains="fit", initial_gains=gains,
                       variant=variant, **options)
