@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import mitsuba as mi
@@ -19,6 +20,12 @@ def read_exr(path: Path) -> np.ndarray:
     """Linear RGB of an EXR file written by the render command."""
     use_variant("scalar_rgb")
     return np.array(mi.Bitmap(str(path)), dtype=np.float64)[..., :3]
+
+
+def powder_props(parsed) -> dict:
+    """{name: value} of the first powder BSDF of a parsed scene description."""
+    props = parsed.powders()[0].props
+    return {k: props[k] for k in props.keys()}
 
 
 def test_cli_renders_the_bundled_scene(tmp_path, capsys):
@@ -139,13 +146,13 @@ def test_render_applies_fitted_parameters(tmp_path, capsys):
     assert main(base + ["--params", str(params)]) == 0
     from mitsuba_powder.rendering.render import scene_with_properties
 
-    text, count, removed = scene_with_properties(SCENE, {"eta": 1.35, "k": 0.0})
-    assert count == 1 and '<float name="eta" value="1.35"' in text and removed == []
+    parsed, count, removed = scene_with_properties(SCENE, {"eta": 1.35, "k": 0.0})
+    assert count == 1 and removed == [] and powder_props(parsed)["eta"] == 1.35
     # grains given without an albedo: the scene's albedo goes, so the albedo is Mie's
-    text, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "extinction": 1.0})
-    assert removed == ["albedo"] and '<rgb name="albedo"' not in text
-    text, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "albedo": 0.5})
-    assert removed == [] and 'name="albedo" value="0.5"' in text
+    parsed, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "extinction": 1.0})
+    assert removed == ["albedo"] and "albedo" not in powder_props(parsed)
+    parsed, _, removed = scene_with_properties(SCENE, {"radius": 0.08, "albedo": 0.5})
+    assert removed == [] and powder_props(parsed)["albedo"] == 0.5
 
 
 def test_apply_properties_after_loading():
@@ -184,8 +191,8 @@ def test_render_sets_properties_on_included_powders(tmp_path, capsys):
 """)
     from mitsuba_powder.rendering.render import scene_with_properties
 
-    text, count, _ = scene_with_properties(tmp_path / "main.xml", {"lobes": "single"})
-    assert count == 1 and 'value="single"' in text
+    parsed, count, _ = scene_with_properties(tmp_path / "main.xml", {"lobes": "single"})
+    assert count == 1 and powder_props(parsed)["lobes"] == "single"
     out = tmp_path / "i.exr"
     assert main(["render", str(tmp_path / "main.xml"), "-o", str(out), "--spp", "1", "--set",
                  "extinction=2", "--set", "lobes=single"]) == 0
@@ -226,11 +233,15 @@ def test_property_values_in_the_description():
     elements the plugin reads."""
     from mitsuba_powder.rendering.render import scene_with_properties
 
-    text, _, _ = scene_with_properties(SCENE, {
+    use_variant("scalar_spectral")
+    parsed, _, _ = scene_with_properties(SCENE, {
         "rgb_wavelengths": "600, 550, 450",
         "albedo": {"type": "irregular", "wavelengths": [400.0, 700.0], "values": [0.2, 0.8]}})
-    assert '<string name="rgb_wavelengths" value="600, 550, 450"' in text
-    assert '<spectrum name="albedo" value="400.0:0.2, 700.0:0.8"' in text
+    props = powder_props(parsed)
+    assert props["rgb_wavelengths"] == "600, 550, 450"
+    assert list(props["albedo"].wavelengths) == [400.0, 700.0]
+    assert list(props["albedo"].values) == pytest.approx([0.2, 0.8])
+    assert parsed.load() is not None  # the plugin takes what was written
     with pytest.raises(ValueError, match="a spectrum must be"):
         scene_with_properties(SCENE, {"albedo": {"type": "blackbody"}})
 
@@ -250,3 +261,43 @@ def test_render_reports_the_scenes_sample_count(tmp_path, capsys):
     assert main(["render", str(SCENE), "-o", str(out), "-D", "res_x=16", "-D", "res_y=8",
                  "-D", "spp=3"]) == 0
     assert "16x8, 3 spp (the scene's)" in capsys.readouterr().out
+
+
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
+
+#: Small renders of each bundled scene (its own -D names)
+_SMALL = {"gonio.xml": ["-D", "res=4", "-D", "spp=1"],
+          "powder_patch.xml": ["-D", "res_x=8", "-D", "res_y=4", "-D", "spp=1"],
+          "showcase.xml": ["-D", "res_x=8", "-D", "res_y=4", "-D", "spp=1"],
+          "showcase_grains.xml": ["-D", "res_x=8", "-D", "res_y=4", "-D", "spp=1"]}
+
+
+@pytest.mark.parametrize("name", sorted(_SMALL))
+def test_bundled_scenes_take_set_and_params(tmp_path, capsys, name):
+    """Issue 33, case 1: every bundled scene takes --set and --params (their comments hold
+    '--', which Mitsuba's parser accepts and Python's XML parser does not); the value set
+    reaches the plugin (the image changes)."""
+    assert "--" in (SCENES / name).read_text()  # the case this test is about
+    base = ["render", str(SCENES / name), *_SMALL[name]]
+    plain, changed, from_json = (tmp_path / f"{k}.exr" for k in ("plain", "set", "json"))
+    assert main([*base, "-o", str(plain)]) == 0
+    assert main([*base, "-o", str(changed), "--set", "g=0.6", "--set", "extinction=0.25"]) == 0
+    out = capsys.readouterr().out
+    assert "set on every powder BSDF: g = 0.6, extinction = 0.25" in out
+    params = tmp_path / "fit.json"
+    params.write_text(json.dumps({"parameters": {"g": 0.6, "extinction": 0.25}}))
+    assert main([*base, "-o", str(from_json), "--params", str(params)]) == 0
+    a, b, c = (read_exr(p) for p in (plain, changed, from_json))
+    assert np.all(np.isfinite(b)) and not np.array_equal(a, b)
+    np.testing.assert_array_equal(b, c)
+
+
+def test_render_names_a_scene_mitsuba_cannot_parse(tmp_path, capsys):
+    """A scene that is not XML: an error naming the file (Mitsuba's parser's message), exit 2,
+    nothing written."""
+    bad = tmp_path / "bad.xml"
+    bad.write_text('<scene version="3.0.0"><bsdf type="powder">\n')
+    out = tmp_path / "o.exr"
+    assert main(["render", str(bad), "-o", str(out), "--set", "g=0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.xml" in err and "Traceback" not in err and not out.exists()

@@ -13,7 +13,7 @@ from .._checks import check_range
 from ..outputs import guarding_inputs, output_file
 from ..plugin.params import check_property_names
 from ..variants import check_variant, use_variant
-from .scene_description import expanded_tree, scene_files, scene_with_properties
+from .scene_description import parse_scene, scene_files, scene_with_properties
 
 __all__ = ["RenderResult", "apply_properties", "render_scene", "scene_files",
            "scene_with_properties"]
@@ -88,19 +88,10 @@ def apply_properties(scene, properties: dict) -> tuple[list[str], list[str]]:
 def _load_with_properties(scene: Path, properties: dict, defines: dict) -> tuple:
     """(loaded scene, names applied in the scene description, names left for traverse,
     scene properties removed)."""
-    text, count, removed = scene_with_properties(scene, properties)
+    parsed, count, removed = scene_with_properties(scene, properties, defines)
     if count == 0:
-        return mi.load_file(str(scene), **defines), [], list(properties), []
-    resolver = mi.file_resolver()
-    saved = mi.FileResolver(resolver)
-    _, folders, _ = expanded_tree(scene)
-    for folder in reversed(folders):  # relative file names, as load_file does (scene's first)
-        resolver.prepend(str(folder))
-    try:
-        loaded = mi.load_string(text, **defines)
-    finally:
-        mi.set_file_resolver(saved)
-    return loaded, list(properties), [], removed
+        return parsed.load(), [], list(properties), []
+    return parsed.load(), list(properties), [], removed
 
 
 def _load(scene: Path, properties: dict | None, defines: dict[str, str]):
@@ -108,7 +99,7 @@ def _load(scene: Path, properties: dict | None, defines: dict[str, str]):
     removed) of ``scene`` with ``properties`` written into its powders (or set through
     ``mi.traverse`` where the description defines none)."""
     if not properties:
-        return mi.load_file(str(scene), **defines), [], [], []
+        return parse_scene(scene, defines).load(), [], [], []
     loaded, applied, rest, removed = _load_with_properties(scene, properties, defines)
     missing: list[str] = []
     if rest:  # no powder BSDF in the file itself: set what traverse exposes
@@ -171,7 +162,7 @@ def render_scene(
         RuntimeError: the variant's backend (CUDA, LLVM) cannot run here.
     """
     scene, output = _check_arguments(scene, output, variant, spp, properties)
-    with guarding_inputs(*scene_files(scene, defines)), use_variant(variant):
+    with use_variant(variant), guarding_inputs(*scene_files(scene, defines)):
         output = output_file(output, "output")
         start = time.perf_counter()
         loaded, applied, missing, removed = _load(scene, properties, defines or {})
