@@ -8,6 +8,13 @@ around each command; :func:`mitsuba_powder.rendering.render.render_scene` and
 read is recorded by :func:`note_input`, and a write whose resolved path is one of them is
 refused with :class:`OutputError` before anything is written.
 
+A command that writes a folder (``--out``) writes it whole or not at all
+(:func:`staged_output`): its files go to a staging folder inside it (:data:`STAGING`) and are
+moved into place once the work is done, so an interrupted run leaves the previous result as it
+was; while they are moved, :data:`INCOMPLETE` marks the folder, and the readers of results
+(:func:`check_complete`) refuse a folder so marked. The folder is checked (not a file, not an
+input, writable) before the work starts.
+
 File names that come from a data file (the images named by an RTI ``.lp`` file) are reduced by
 :func:`output_names`: a relative name without ``..`` is kept, an absolute name or one with a
 ``..`` component is reduced to its base name, and two lights whose names reduce to one file are
@@ -16,15 +23,33 @@ an error naming both lines.
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 
-__all__ = ["OutputError", "guarding_inputs", "note_input", "output_path", "output_file",
-           "output_names", "protected_inputs"]
+__all__ = ["INCOMPLETE", "MANIFEST", "STAGING", "OutputError", "check_complete",
+           "check_finite_json", "final_path", "guarding_inputs", "note_input", "output_file",
+           "output_names", "output_path", "protected_inputs", "staged_output"]
 
 _INPUTS: ContextVar[set[Path] | None] = ContextVar("mitsuba_powder_inputs", default=None)
+#: {resolved output folder: its staging folder} of the running command (:func:`staged_output`)
+_STAGED: ContextVar[dict[Path, Path] | None] = ContextVar("mitsuba_powder_staged", default=None)
+
+#: The staging folder inside an output folder, removed once its files are moved into place
+STAGING = ".partial"
+#: Present in an output folder while a command moves its finished result's files into it
+#: (``{command}``: the command's name)
+INCOMPLETE = ".incomplete.{command}"
+#: The files of the last whole result a command wrote into an output folder (JSON list;
+#: ``{command}``: the command's name, so that commands sharing a folder keep their files)
+MANIFEST = ".written.{command}.json"
+#: Top-level names written in place, not staged: the resume files of long fits (their own
+#: files are written whole, and a later run finds them)
+_IN_PLACE = ("tiles",)
 
 
 class OutputError(ValueError):
@@ -138,8 +163,31 @@ def output_path(folder: str | Path, name: str | Path, mkdir: bool = True) -> Pat
         raise OutputError(f"output {path} resolves to {target}, outside the output folder "
                           f"{root} (a link?); nothing was written")
     _check_not_input(target, path)
+    path = _staged_path(target, path)
     if mkdir:
         path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def final_path(path: str | Path) -> Path:
+    """Where a file that :func:`output_path` placed in a staging folder will be once the
+    output is moved into place (other paths unchanged): what messages show."""
+    p = Path(path)
+    parts = p.parts
+    if STAGING in parts:
+        i = parts.index(STAGING)
+        return Path(*parts[:i], *parts[i + 1:])
+    return p
+
+
+def _staged_path(target: Path, path: Path) -> Path:
+    """Where a write to ``path`` (resolved: ``target``) goes: inside a staged output folder,
+    its staging folder (but for :data:`_IN_PLACE` names), else ``path``."""
+    for root, staging in (_STAGED.get() or {}).items():
+        if target.is_relative_to(root) and target != root:
+            rel = target.relative_to(root)
+            if rel.parts[0] not in _IN_PLACE and rel.parts[0] != STAGING:
+                return staging / rel
     return path
 
 
@@ -175,3 +223,137 @@ def output_names(names: Sequence[str], where: Sequence[str]) -> list[str]:
         seen[key] = k
         out.append(reduced)
     return out
+
+
+def _non_finite(obj, path: str) -> Iterator[str]:
+    """The paths (``a.b[3]``) of the NaN and infinite floats inside JSON-like ``obj``."""
+    if isinstance(obj, float):
+        if obj != obj or obj in (float("inf"), float("-inf")):
+            yield path or "(the value)"
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _non_finite(v, f"{path}.{k}" if path else str(k))
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _non_finite(v, f"{path}[{i}]")
+
+
+def check_finite_json(obj, name: str) -> None:
+    """Refuse to write NaN or Infinity into a JSON file (they are not JSON, and no result of
+    this package may end in them with exit 0).
+
+    Raises:
+        OutputError: naming ``name`` and the first paths of the non-finite values.
+    """
+    bad = list(_non_finite(obj, ""))
+    if bad:
+        shown = ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+        raise OutputError(f"{name} would hold NaN or Infinity at {shown}: the result is "
+                          "degenerate; nothing was written")
+
+
+def _check_output_folder(out: str | Path, what: str) -> Path:
+    """An output folder checked before any work: not a file, not an input, creatable and
+    writable; created."""
+    base = Path(out).expanduser()
+    if base.exists() and not base.is_dir():
+        raise OutputError(f"{what} {out} is a file; give a folder")
+    _check_not_input(_resolved(base), base, what)
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{what} {out}: cannot create the folder ({exc.strerror})") from None
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {out}: the folder is not writable")
+    return base
+
+
+@contextmanager
+def staged_output(out: str | Path, what: str = "--out", command: str = "output"
+                  ) -> Iterator[Path]:
+    """Write the output folder ``out`` whole or not at all.
+
+    ``out`` is checked first (not a file, not an input, writable). Inside the block,
+    :func:`output_path` sends every file under ``out`` to ``out/.partial`` (but for the resume
+    files of tiled fits); when the block ends normally, the files are moved into ``out``:
+    :data:`INCOMPLETE` is created, the files of the previous result (:data:`MANIFEST`) that this
+    one does not write again are removed (those of the same ``command``: commands may share a
+    folder), the new ones moved into place, the manifest written
+    and :data:`INCOMPLETE` removed. An exception or an interrupt leaves ``out`` as it was (the
+    staging folder is removed).
+
+    Yields:
+        ``out`` as a Path.
+
+    Raises:
+        OutputError: ``out`` is a file, an input of the command, or not writable.
+    """
+    created = not Path(out).expanduser().exists()
+    base = _check_output_folder(out, what)
+    root = _resolved(base)
+    staging = base / STAGING
+    _remove_tree(staging)
+    staging.mkdir()
+    token = _STAGED.set({**(_STAGED.get() or {}), root: staging})
+    try:
+        yield base
+    except BaseException:
+        _remove_tree(staging)
+        if created and not any(base.iterdir()):  # a folder this call made, left empty
+            base.rmdir()
+        raise
+    finally:
+        _STAGED.reset(token)
+    _commit(base, staging, command)
+
+
+def _remove_tree(path: Path) -> None:
+    """Remove a staging folder (a link in its place is removed, not followed)."""
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.exists():
+        shutil.rmtree(path)
+
+
+def _commit(base: Path, staging: Path, command: str) -> None:
+    """Move a finished result from ``staging`` into ``base`` (see :func:`staged_output`)."""
+    new = sorted(str(p.relative_to(staging)) for p in staging.rglob("*") if p.is_file())
+    manifest = base / MANIFEST.format(command=command)
+    marker = base / INCOMPLETE.format(command=command)
+    marker.write_text("a result is being moved into this folder; if this file stays, the "
+                      "run was interrupted: run the command again\n")
+    for rel in sorted(set(_manifest(manifest)) - set(new)):
+        old = base / rel
+        if _is_safe_relative(rel) and _resolved(old).is_relative_to(_resolved(base)) and \
+                _resolved(old) not in (_INPUTS.get() or ()):
+            old.unlink(missing_ok=True)
+    for rel in new:
+        (base / rel).parent.mkdir(parents=True, exist_ok=True)
+        os.replace(staging / rel, base / rel)
+    manifest.write_text(json.dumps(new, indent=1) + "\n")
+    _remove_tree(staging)
+    marker.unlink()
+
+
+def _manifest(path: Path) -> list[str]:
+    """The files a command's previous whole result wrote (empty without its manifest)."""
+    try:
+        names = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    return [n for n in names if isinstance(n, str)] if isinstance(names, list) else []
+
+
+def check_complete(folder: str | Path) -> None:
+    """Refuse a result folder that an interrupted run left half moved into place
+    (:data:`INCOMPLETE` present).
+
+    Raises:
+        OutputError: naming the folder and what to do.
+    """
+    left = sorted(Path(folder).glob(INCOMPLETE.format(command="*")))
+    if left:
+        command = left[0].name[len(INCOMPLETE.format(command="")):]
+        raise OutputError(f"{folder} is incomplete: a run of {command} writing it was "
+                          f"interrupted while its files were moved into place ({left[0].name} "
+                          f"is there); run {command} again")

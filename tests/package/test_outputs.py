@@ -17,6 +17,7 @@ import pytest
 
 from mitsuba_powder.cli import main
 from mitsuba_powder.outputs import (
+    MANIFEST,
     OutputError,
     guarding_inputs,
     note_input,
@@ -155,9 +156,11 @@ def test_relight_with_absolute_names_writes_only_under_out(tmp_path, capture, ma
              **{f"maps/{k}": v for k, v in snapshot(maps).items()},
              **{f"root/{k}": v for k, v in snapshot(root).items()}}
     unchanged_outside(before, after, "root/relit")
-    written = sorted(p.name for p in out.iterdir())
+    manifest = MANIFEST.format(command="relight")
+    written = sorted(p.name for p in out.iterdir() if p.name != manifest)
     assert written == sorted([f"light{k:02d}.png" for k in range(12)]
                              + ["outside.png", "dirs_abs.lp"])
+    assert json.loads((out / manifest).read_text()) == written  # what the run wrote, whole
     assert not (root / "outside.png").exists() and not (root / "lights" / "..").joinpath(
         "outside.png").exists()
     # the .lp beside the images names what was written: the output is itself a capture

@@ -289,7 +289,7 @@ def test_bundled_scenes_take_set_and_params(tmp_path, capsys, name):
     assert main([*base, "-o", str(from_json), "--params", str(params)]) == 0
     a, b, c = (read_exr(p) for p in (plain, changed, from_json))
     assert np.all(np.isfinite(b)) and not np.array_equal(a, b)
-    np.testing.assert_array_equal(b, c)
+    np.testing.assert_allclose(b, c, rtol=1e-6)  # threads may sum in another order
 
 
 def test_render_names_a_scene_mitsuba_cannot_parse(tmp_path, capsys):

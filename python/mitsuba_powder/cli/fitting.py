@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..outputs import final_path
 from .common import _load_data, _parse_define, _value
 
 
@@ -92,7 +93,7 @@ def _fit(args: argparse.Namespace, data, held_out, process) -> int:
         st = statistics(held[1], held[0])
         print(f"prediction of {st['n']} held-out measurements: relative RMSE "
               f"{st['relative_rmse_percent']:.2f} %")
-    print(f"wrote {path}" + {"none": " (no figures: --figures none)",
+    print(f"wrote {final_path(path)}" + {"none": " (no figures: --figures none)",
                              "summary": f" and the summary figures in {args.out}",
                              "all": f" and the summary and per-wavelength figures in "
                                     f"{args.out}"}[args.figures])
@@ -148,5 +149,5 @@ def _cmd_compare_models(args: argparse.Namespace) -> int:
     rows = compare_models(data, free, fixed, starts=args.starts)
     path = write_comparison(rows, args.out)
     print(path.read_text())
-    print(f"wrote {path} and {path.with_suffix('.json').name}")
+    print(f"wrote {final_path(path)} and {path.with_suffix('.json').name}")
     return 0

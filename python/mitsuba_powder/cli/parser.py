@@ -135,7 +135,7 @@ def _add_render_gonio_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="gonio_out", help="output folder")
     _add_data_options(p)
-    p.set_defaults(func=_cmd_render_gonio)
+    p.set_defaults(func=_cmd_render_gonio, out_folder=True)
 
 
 def _add_compare_photo_parser(sub: argparse._SubParsersAction) -> None:
@@ -165,7 +165,7 @@ def _add_compare_photo_parser(sub: argparse._SubParsersAction) -> None:
                         "region is clipped in the photo (0-1; 1: never)")
     p.add_argument("--out", default="photo_compare",
                    help="output folder (photo_comparison.json, delta_e.png, side_by_side.png)")
-    p.set_defaults(func=_cmd_compare_photo)
+    p.set_defaults(func=_cmd_compare_photo, out_folder=True)
 
 
 def _add_albedo_parser(sub: argparse._SubParsersAction) -> None:
@@ -238,7 +238,7 @@ def _add_fit_parser(sub: argparse._SubParsersAction) -> None:
                         "wavelengths); all: also a plane-of-incidence and a polar figure per "
                         "wavelength; none: fit.json only (default summary)")
     _add_data_options(p)
-    p.set_defaults(func=_cmd_fit)
+    p.set_defaults(func=_cmd_fit, out_folder=True)
 
 
 def _add_simulate_parser(sub: argparse._SubParsersAction) -> None:
@@ -277,7 +277,7 @@ def _add_compare_models_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="model_compare",
                    help="output folder (model_comparison.md and .json)")
     _add_data_options(p)
-    p.set_defaults(func=_cmd_compare_models)
+    p.set_defaults(func=_cmd_compare_models, out_folder=True)
 
 
 def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
@@ -311,7 +311,7 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
                    help="smooth gains: relative spread of the lights about the trend (e.g. "
                         "0.02); default none (the gains are the trend)")
     _add_tile_options(p)
-    p.set_defaults(func=_cmd_fit_maps)
+    p.set_defaults(func=_cmd_fit_maps, out_folder=True)
 
 
 def _add_tile_options(p: argparse.ArgumentParser) -> None:
@@ -348,7 +348,7 @@ def _add_relight_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder (one image per .lp line, "
                                                 "the capture's format and bit depth)")
     _add_light_options(p, fit=False)
-    p.set_defaults(func=_cmd_relight)
+    p.set_defaults(func=_cmd_relight, out_folder=True)
 
 
 def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
@@ -374,7 +374,7 @@ def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
                    help="score each model with distant lights (far), lights at the light "
                         "distance (near, rows <model>_near) or both (default: both when a "
                         "finite light distance is given or fitted, else far)")
-    p.set_defaults(func=_cmd_compare_maps)
+    p.set_defaults(func=_cmd_compare_maps, out_folder=True)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..outputs import final_path
 from .common import _load_data, _parse_define, _value
 
 
@@ -94,7 +95,7 @@ def _cmd_render_gonio(args: argparse.Namespace) -> int:
         f", max |z| {m['max_abs_z']:.2f}, {m['beyond_3_sigma']} beyond 3 sigma (expected "
         f"{m['expected_beyond_3_sigma_if_gaussian']} if Gaussian)" if m["values"]
         else " (no z-test)"))
-    print(f"wrote {path}, gonio.csv and gonio.png")
+    print(f"wrote {final_path(path)}, gonio.csv and gonio.png")
     return 0
 
 
@@ -142,5 +143,5 @@ def _cmd_compare_photo(args: argparse.Namespace) -> int:
               "compared)")
     print(f"CIEDE2000 over {stats.pixels} pixels: mean {stats.mean:.2f}, median "
           f"{stats.median:.2f}, p95 {stats.p95:.2f}, max {stats.max:.2f}")
-    print(f"wrote {path}, delta_e.png and side_by_side.png")
+    print(f"wrote {final_path(path)}, delta_e.png and side_by_side.png")
     return 0

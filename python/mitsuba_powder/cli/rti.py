@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from ..outputs import final_path
 from .common import _fixed_properties, _names
 
 #: How messages name the fit's options given by a flag of another name
@@ -215,7 +216,7 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     comp = compare(capture, models, phase=args.phase, light_distance=distance)
     path = write_comparison(comp, args.out, error_images=not args.no_error_images)
     print(path.read_text())
-    print(f"wrote {path}, compare.json" + ("" if args.no_error_images else
+    print(f"wrote {final_path(path)}, compare.json" + ("" if args.no_error_images else
                                             " and error_<protocol>_<model>.png"))
     return 0
 

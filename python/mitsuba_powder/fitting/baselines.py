@@ -32,7 +32,13 @@ import numpy as np
 
 from .._checks import check_range, out_of_range
 from ..io.measurements import Measurements
-from .optimise import ParamSpec, finite_difference_jacobian, multistart, sobol_starts
+from .optimise import (
+    ParamSpec,
+    check_determined,
+    finite_difference_jacobian,
+    multistart,
+    sobol_starts,
+)
 
 
 def _angles(wi: np.ndarray, wo: np.ndarray):
@@ -246,6 +252,8 @@ def fit_baseline(model: str, data: Measurements, starts: int = 32, seed: int = 0
     for lam in data.wavelengths():
         t0 = time.perf_counter()
         sel = data.wavelength == lam
+        check_determined(data.subset(sel).geometry_summary()["geometries"], len(specs),
+                         f"the {model} fit at {lam:g} nm")
         problem = _BaselineProblem(func, specs, wi_all[sel], wo_all[sel], data.brf[sel],
                                    weights[sel])
         y0 = sobol_starts(problem.lower, problem.upper, starts, seed)

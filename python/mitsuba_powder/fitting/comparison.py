@@ -12,6 +12,7 @@ from ..io.measurements import Measurements
 from ..outputs import output_path
 from .baselines import MODELS, fit_baseline
 from .fit import fit
+from .optimise import check_determined
 from .report import statistics
 
 #: The powder model's rows, by its ``surface_fresnel`` setting
@@ -41,6 +42,10 @@ def compare_models(data: Measurements, free: list[str] | None = None,
     row of its own where the optimum differs, with the bound lifted (``... (free
     regime)``)."""
     check_range("starts", starts, 1)
+    for lam in data.wavelengths():  # before any fit: every model must be determined
+        geometries = data.subset(data.wavelength == lam).geometry_summary()["geometries"]
+        for name, (_, specs) in MODELS.items():
+            check_determined(geometries, len(specs), f"the {name} fit at {lam:g} nm")
     rows = []
     for lam in data.wavelengths():
         d = data.subset(data.wavelength == lam)

@@ -47,7 +47,13 @@ from ..plugin import registry
 from ..plugin.brf import VARIANT, PowderBRF, batch_variant
 from ..plugin.grains import GRAIN_VARIABLES, GrainOptics
 from ..variants import use_variant
-from .optimise import AGREEMENT, MultistartResult, multistart, sobol_starts
+from .optimise import (
+    AGREEMENT,
+    MultistartResult,
+    check_determined,
+    multistart,
+    sobol_starts,
+)
 from .problem import DEFAULT_RADIUS, GRAIN_SETTINGS, Problem
 from .variables import EBS_KAPPA_OVER_K0, FITTABLE, REGIMES
 
@@ -383,6 +389,10 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
     check_range("polish", polish, 1)
     if len(data) == 0:
         raise ValueError("no measurements to fit")
+    if not np.any(data.brf > 0):
+        raise ValueError(f"{data.source or 'the data'}: every BRF value is 0: a powder that "
+                         "reflects nothing has no parameters to fit (check the file's brf "
+                         "column)")
     # once for the whole fit: switching variants is slow
     with use_variant(batch_variant(data.wavelength)):
         return _fit(data, list(free or default_free(data, fixed)), dict(fixed or {}), starts,
@@ -393,6 +403,8 @@ def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress
          ) -> FitResult:
     t0 = time.perf_counter()
     problem = Problem(data, free, fixed, regime)
+    check_determined(data.geometry_summary()["geometries"], len(problem.names),
+                     f"the fit of {data.source or 'the data'}")
     optics = _optics(problem)
     if progress:
         progress(f"optics: {optics['source']}" + (
@@ -437,11 +449,29 @@ def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress
                    if regime == "ebs" else None,
                    "kappa_over_k0": _kappa_over_k0(parameters.get("extinction", 1.0),
                                                    problem.wavelengths)}
+    _check_finite(parameters, model_brf, chi2, data)
     return FitResult(parameters, by_wavelength, uncertainties, problem.free, data, model_brf,
                      chi2, problem.evaluations, time.perf_counter() - t0,
                      [float(c) for c in result.start_costs], result.agreeing,
                      ([_label(n, w) for n, w in problem.names], corr), warnings,
                      chi2_per_point, branches, optics, result.stages, regime_info)
+
+
+def _check_finite(parameters: dict, model_brf: np.ndarray, chi2: float,
+                  data: Measurements) -> None:
+    """Raise instead of returning a fit whose parameters, model or loss are not finite
+    (naming what and, for the model, the first row)."""
+    bad = [k for k, v in parameters.items()
+           if isinstance(v, float) and not math.isfinite(v) and k != "thickness"]
+    if bad:
+        raise RuntimeError(f"the fit of {data.source or 'the data'} ended with non-finite "
+                           f"parameters {bad}; nothing was written")
+    rows = np.nonzero(~np.isfinite(model_brf))[0]
+    if rows.size or not math.isfinite(chi2):
+        where = (f"at row {int(rows[0])} (theta_i {data.theta_i[rows[0]]:g}, theta_o "
+                 f"{data.theta_o[rows[0]]:g}, phi {data.phi[rows[0]]:g})" if rows.size else "")
+        raise RuntimeError(f"the fit of {data.source or 'the data'} ended with a non-finite "
+                           f"model BRF {where}; nothing was written")
 
 
 def _kappa_over_k0(extinction: float, wavelengths: np.ndarray) -> dict[str, float]:

@@ -70,6 +70,27 @@ class BatchProblem(Protocol):
         """(B, p) points -> residuals (B, N) and their Jacobian (B, N, p) with respect to y."""
 
 
+def check_determined(geometries: int, variables: int, what: str) -> None:
+    """Refuse a least-squares fit that its data cannot determine: it needs more distinct
+    observations (geometries, each wavelength counted) than free variables; with as many or
+    fewer, any parameter set fits exactly and nothing (value, uncertainty) would mean anything.
+
+    Args:
+        geometries: distinct observations (replicated rows count once).
+        variables: free variables of the fit.
+        what: the fit, for the message (e.g. ``"the powder fit of data.csv"``).
+
+    Raises:
+        ValueError: ``geometries <= variables``.
+    """
+    if geometries <= variables:
+        raise ValueError(f"{what}: {variables} free variable{'s' * (variables != 1)} cannot be "
+                         f"determined by {geometries} distinct geometr"
+                         f"{'ies' if geometries != 1 else 'y'} (replicated rows count once); it "
+                         "needs more geometries than free variables: give more measurements or "
+                         "fewer free parameters (--free, or hold some with --set)")
+
+
 def sobol_starts(lower: np.ndarray, upper: np.ndarray, count: int, seed: int) -> np.ndarray:
     """``count`` scrambled-Sobol points of the box, (count, p)."""
     from scipy.stats import qmc

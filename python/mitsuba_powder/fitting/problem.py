@@ -9,8 +9,6 @@ the plugin's BRF and their Jacobian in the optimiser's variables.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..io.measurements import Measurements
@@ -57,10 +55,8 @@ def _check_free(free: list[str], fixed: dict) -> None:
         raise ValueError(f"albedo = {fixed['albedo']!r}: a fit takes a fixed albedo as one "
                          "number in [0, 1]")
     for name, value in fixed.items():
-        spec = FITTABLE.get(name)
-        if spec is not None and isinstance(value, (int, float)) and name != "albedo" and not (
-                math.isfinite(value) or name == "thickness"):
-            raise ValueError(f"{name} = {value} is not a finite number")
+        if registry.interval(name) is not None:  # the plugin's range, its own rule
+            registry.check_value(name, value, "fixed ")
 
 
 def _check_grain_model(free: list[str], fixed: dict) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.measurements import Measurements
-from ..outputs import output_path
+from ..outputs import check_finite_json, output_path
 from .figure_process import FigureProcess
 from .figures import DENSE_THETA_O, FitFigures, draw
 from .fit import FitResult
@@ -30,10 +30,17 @@ def statistics(model: np.ndarray, data: Measurements, mask: np.ndarray | None = 
     if not np.any(mask):
         return {"n": 0}
     r = model[mask] - data.brf[mask]
-    rel = r / data.brf[mask]
-    return {"n": int(mask.sum()), "rmse_brf": float(np.sqrt(np.mean(r**2))),
-            "relative_rmse_percent": float(100 * np.sqrt(np.mean(rel**2))),
-            "max_abs_relative_error_percent": float(100 * np.max(np.abs(rel)))}
+    positive = data.brf[mask] > 0  # a relative error is defined where the BRF is not 0
+    rel = r[positive] / data.brf[mask][positive]
+    out = {"n": int(mask.sum()), "rmse_brf": float(np.sqrt(np.mean(r**2)))}
+    if rel.size:
+        out["relative_rmse_percent"] = float(100 * np.sqrt(np.mean(rel**2)))
+        out["max_abs_relative_error_percent"] = float(100 * np.max(np.abs(rel)))
+    else:
+        out["relative_rmse_percent"] = out["max_abs_relative_error_percent"] = None
+    if not positive.all():
+        out["relative_rows"] = int(positive.sum())  # rows with BRF 0 left out of them
+    return out
 
 
 def _geometry_summary(data: Measurements) -> dict:
@@ -118,6 +125,7 @@ def report_dict(result: FitResult, held_out: tuple[Measurements, np.ndarray] | N
 def dumps_report(report: dict) -> str:
     """``report`` as the text of ``fit.json``: indented, one line per residual row (json's
     indenting encoder is pure Python; the rows go through its C encoder)."""
+    check_finite_json(report, "fit.json")
     rows = report.get("residuals")
     if not rows:
         return json.dumps(report, indent=1)

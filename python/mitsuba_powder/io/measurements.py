@@ -95,8 +95,26 @@ def load_measurements(path: str | Path, convention: str | None = None,
             raise MeasurementError(
                 f"{path}: convention = {convention!r} applies to IPAG files; a CSV file is in "
                 "the project convention (signed theta_o, light at azimuth 0)")
-        return _load_csv(path)
-    return ipag.load_ipag(path, convention=convention, zero_error=zero_error)
+        data = _load_csv(path)
+    else:
+        data = ipag.load_ipag(path, convention=convention, zero_error=zero_error)
+    _check_degrees(data, path)
+    return data
+
+
+#: Largest zenith angle, in radians, of a hemisphere (pi / 2, rounded up): a file whose every
+#: angle is at most this many degrees almost surely holds radians
+_RADIAN_LIKE = 1.6
+
+
+def _check_degrees(data: Measurements, path: Path) -> None:
+    """Refuse angles that look like radians: every theta_i and theta_o within
+    :data:`_RADIAN_LIKE` degrees of the normal (and not all 0)."""
+    largest = float(np.max(np.abs(np.concatenate([data.theta_i, data.theta_o]))))
+    if 0.0 < largest <= _RADIAN_LIKE:
+        raise MeasurementError(
+            f"{path}: every angle (theta_i, theta_o) is at most {largest:g} degrees: they look "
+            f"like radians; the angles must be in degrees (radians x 57.29578)")
 
 
 def _load_csv(path: Path) -> Measurements:

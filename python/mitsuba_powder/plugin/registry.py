@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import _optics
-from .._checks import interval_text
+from .._checks import interval_text, out_of_range
 
-__all__ = ["DEFAULTS", "GRAIN_MODELS", "GRAIN_SIZES", "GRAIN_VARIABLES", "INTERVALS",
-           "Interval", "MATERIALS", "RANGES", "check_grain_model", "grain_size",
-           "material_files", "second_population"]
+__all__ = ["ALBEDO_INTERVAL", "DEFAULTS", "GRAIN_MODELS", "GRAIN_SIZES", "GRAIN_VARIABLES",
+           "INTERVALS", "Interval", "MATERIALS", "RANGES", "check_grain_model", "check_value",
+           "grain_size", "interval", "material_files", "second_population"]
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,37 @@ RANGES: dict[str, tuple[float, float]] = dict(_optics.property_ranges())
 #: {property: Interval} valid range of every numeric property, with its open or closed ends
 INTERVALS: dict[str, Interval] = {name: Interval(*ends)
                                   for name, ends in _optics.property_intervals().items()}
+#: the albedo's valid range (rho, per channel or wavelength; checked by the plugin's
+#: ``powder_textures.h``, not in its table of float parameters)
+ALBEDO_INTERVAL = Interval(0.0, 1.0, True, True)
+
+
+def interval(name: str) -> Interval | None:
+    """The valid range of numeric property ``name`` (:data:`INTERVALS`, the albedo's
+    :data:`ALBEDO_INTERVAL`), or None for a property without one (strings)."""
+    return ALBEDO_INTERVAL if name == "albedo" else INTERVALS.get(name)
+
+
+def check_value(name: str, value, what: str = "") -> float:
+    """``value`` as a float, if it lies in the plugin's valid range of property ``name``
+    (:func:`interval`); else ``ValueError`` naming it, its value and the range (the plugin's
+    own rule: :meth:`Interval.contains`).
+
+    Args:
+        name: a numeric plugin property.
+        value: a number (or its text).
+        what: how the value was given, written before the name (e.g. ``"--set "``).
+    """
+    valid = interval(name)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}{name} = {value!r} is not a number") from None
+    if valid is not None and not bool(valid.contains(v)):
+        raise ValueError(out_of_range(f"{what}{name} = {value!r}", str(valid)))
+    return v
+
+
 #: names of the built-in grain materials (the ``material`` property)
 MATERIALS: tuple[str, ...] = tuple(_optics.materials())
 #: {grain model: {"size", "allowed", "required", "two_populations"}} (the ``grains`` property)

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..outputs import guarding_inputs, note_input, note_inputs, output_path
+from ..outputs import check_complete, guarding_inputs, note_input, note_inputs, output_path
 from ..rendering.scene_description import xml_property
 from ..variants import use_variant
 from .capture import Capture, write_images
@@ -313,6 +313,7 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
         ValueError: ``fit.json`` is not a maps description.
     """
     folder = Path(maps_dir)
+    check_complete(folder)
     path = folder / "fit.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file; give a folder written by fit-maps")

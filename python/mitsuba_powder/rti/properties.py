@@ -55,9 +55,8 @@ SPECS: dict[str, ParamSpec] = {
 MAP_GRAIN_SETTINGS = ("grains", "mixing", "agglomerate_fill", "agglomerate_radius", "radius",
                       "radius2", "fraction2")
 
-#: The single-scattering albedo of a channel: a probability, [0, 1] (docs/model.md; the
-#: plugin checks a given albedo texture against it, powder_textures.h)
-ALBEDO_INTERVAL = registry.Interval(0.0, 1.0, True, True)
+#: The single-scattering albedo of a channel: [0, 1] (:data:`registry.ALBEDO_INTERVAL`)
+ALBEDO_INTERVAL = registry.ALBEDO_INTERVAL
 
 
 def valid_range(name: str) -> registry.Interval:
