@@ -55,27 +55,28 @@ def _read_reflectance_csv(path: str) -> tuple:
     import numpy as np
 
     from ..outputs import note_input
+    from ..readers import read_text
 
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"--reflectance {path}: no such file")
     note_input(p)
     wl, values = [], []
-    with p.open(newline="", encoding="utf-8") as fh:
-        for lineno, row in enumerate(csv.reader(fh), start=1):
-            if not row or row[0].strip().startswith("#"):
+    for lineno, row in enumerate(csv.reader(read_text(p, "--reflectance").splitlines()),
+                                 start=1):
+        if not row or row[0].strip().startswith("#"):
+            continue
+        if len(row) != 2:
+            raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 2 "
+                             "(wavelength in nm, reflectance)")
+        try:
+            a, b = float(row[0]), float(row[1])
+        except ValueError:
+            if not wl:  # a header line
                 continue
-            if len(row) != 2:
-                raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 2 "
-                                 "(wavelength in nm, reflectance)")
-            try:
-                a, b = float(row[0]), float(row[1])
-            except ValueError:
-                if not wl:  # a header line
-                    continue
-                raise ValueError(f"{path}, line {lineno}: {row!r} is not two numbers") from None
-            wl.append(a)
-            values.append(b)
+            raise ValueError(f"{path}, line {lineno}: {row!r} is not two numbers") from None
+        wl.append(a)
+        values.append(b)
     if not wl:
         raise ValueError(f"{path}: no data rows (wavelength nm, reflectance)")
     return np.array(wl), np.array(values)

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from ..outputs import note_input, output_file
+from ..readers import read_text
 from . import ipag
 from .dataset import (
     OPTIONAL,
@@ -124,20 +125,20 @@ def _load_csv(path: Path) -> Measurements:
     header: list[str] | None = None
     header_line = 0
     note_input(path)
-    with path.open(newline="", encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            stripped = line.strip()
-            if not stripped:
-                continue
-            if stripped.startswith("#"):
-                comments.append(stripped[1:].strip())
-                continue
-            fields = next(csv.reader([stripped]))
-            if header is None:
-                header = [f.strip() for f in fields]
-                header_line = lineno
-            else:
-                rows.append((lineno, [f.strip() for f in fields]))
+    text = read_text(path, "measurement file")
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            comments.append(stripped[1:].strip())
+            continue
+        fields = next(csv.reader([stripped]))
+        if header is None:
+            header = [f.strip() for f in fields]
+            header_line = lineno
+        else:
+            rows.append((lineno, [f.strip() for f in fields]))
     if header is None:
         raise MeasurementError(f"{path}: no header line (expected columns {', '.join(REQUIRED)})")
     where0 = f"{path}, line {header_line}"

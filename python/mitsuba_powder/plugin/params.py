@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from ..outputs import note_input
+from ..readers import read_json
 
 #: Every property the ``powder`` plugin's constructor reads (its doc comment's parameter table;
 #: tests/plugin/test_params_doc.py checks that the two lists agree)
@@ -58,10 +58,7 @@ def load_properties(path: str | Path | None, wavelength: float | None = None,
         if not path.is_file():
             raise FileNotFoundError(f"parameter file {path} does not exist")
         note_input(path)
-        try:
-            spec = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"parameter file {path}: not valid JSON ({exc})") from None
+        spec = read_json(path, "parameter file")
         if not isinstance(spec, dict):
             raise ValueError(f"parameter file {path}: expected a JSON object of properties")
         by_wl = spec.get("parameters_by_wavelength", {})

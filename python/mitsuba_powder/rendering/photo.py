@@ -26,6 +26,7 @@ import numpy as np
 
 from .._checks import check_range
 from ..outputs import note_input, output_file, output_path
+from ..readers import read_bitmap
 
 ENCODINGS = ("auto", "linear", "srgb")
 ALIGNMENTS = ("none", "exposure", "white-balance")
@@ -62,7 +63,7 @@ def read_image(path: str | Path, encoding: str = "auto") -> np.ndarray:
 
         # mi.Bitmap needs a variant, any will do: the caller's, else scalar_rgb
         with use_variant(mi.variant() or "scalar_rgb"):
-            bmp = mi.Bitmap(str(path))
+            bmp = read_bitmap(path)
             scale = {mi.Struct.Type.UInt8: 255.0, mi.Struct.Type.UInt16: 65535.0}.get(
                 bmp.component_format())
             if scale is None:
@@ -186,6 +187,15 @@ def align(render: np.ndarray, photo: np.ndarray, mode: str = "white-balance",
         return photo, np.ones(3)
     m = np.ones(render.shape[:2], bool) if mask is None else mask
     r, p = render[m], photo[m]
+    for name, values in (("render", r), ("photo", p)):
+        dark = np.sum(values * values, axis=0) <= 0
+        if (dark.all() if mode == "exposure" else dark.any()):
+            channels = "every channel" if dark.all() else "channel " + ", ".join(
+                "RGB"[c] for c in np.nonzero(dark)[0])
+            raise ValueError(f"alignment failed: the {name} has no signal ({channels} is 0 in "
+                             "the compared region)" + (
+                                 ": is the scene lit, and does the camera see the powder?"
+                                 if name == "render" else ""))
     if mode == "exposure":
         g = np.full(3, np.sum(r * p) / max(np.sum(p * p), 1e-300))
     else:

@@ -54,6 +54,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..outputs import guarding_inputs, note_input, note_inputs, output_names, output_path
+from ..readers import read_bitmap
 from ..variants import use_variant
 
 __all__ = ["Capture", "ENCODINGS", "LpFile", "MIN_LZ_DEFAULT", "decode", "encode",
@@ -212,7 +213,7 @@ def _lp_line(line: str, where: str, min_lz: float
             raise ValueError(f"{where}: l{axis} = {text_value!r} is not finite")
         vec.append(v)
     shown = f"({fields[-3]}, {fields[-2]}, {fields[-1]})"
-    norm = math.sqrt(sum(v * v for v in vec))
+    norm = math.hypot(*vec)  # no overflow: (1e300, 0, 0) has norm 1e300
     if norm == 0.0:
         raise ValueError(f"{where}: light direction {shown} is the zero vector; expected a "
                          "non-zero vector towards the light")
@@ -278,7 +279,7 @@ def write_lp(path: str | Path, names: Sequence[str], directions: np.ndarray) -> 
 def _bitmap(path: Path):
     """(raw array (H, W, C), file format, bit depth) of an image file, through mi.Bitmap."""
     with use_variant(mi.variant() or "scalar_rgb"):
-        bmp = mi.Bitmap(str(path))
+        bmp = read_bitmap(path)
         fmt = bmp.component_format()
         pixel = bmp.pixel_format()
         arr = np.array(bmp)

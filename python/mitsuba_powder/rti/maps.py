@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..outputs import check_complete, guarding_inputs, note_input, note_inputs, output_path
+from ..readers import read_bitmap, read_json
 from ..rendering.scene_description import xml_property
 from ..variants import use_variant
 from .capture import Capture, write_images
@@ -142,13 +143,12 @@ def _write_exr(path: Path, data: np.ndarray) -> None:
 
 
 def _read_exr(path: Path) -> np.ndarray:
-    import mitsuba as mi
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such map (the folder must come from fit-maps)")
     note_input(path)
     with use_variant("scalar_rgb"):
-        arr = np.array(mi.Bitmap(str(path)), dtype=np.float32)
+        arr = np.array(read_bitmap(path, "map"), dtype=np.float32)
     return arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
 
 
@@ -318,9 +318,10 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file; give a folder written by fit-maps")
     note_inputs(p for p in folder.iterdir() if p.is_file())  # the whole maps folder is input
-    info = json.loads(path.read_text())
-    if info.get("kind") != "mitsuba-powder maps":
-        raise ValueError(f"{path}: not a fit-maps result (kind = {info.get('kind')!r})")
+    info = read_json(path, "maps description")
+    if not isinstance(info, dict) or info.get("kind") != "mitsuba-powder maps":
+        kind = info.get("kind") if isinstance(info, dict) else type(info).__name__
+        raise ValueError(f"{path}: not a fit-maps result (kind = {kind!r})")
     mask = _read_exr(folder / "mask.exr") > 0.5
     result = MapsResult(
         normals=_read_exr(folder / "normal.exr"),
