@@ -35,8 +35,8 @@ SCENES = [
       "7: 2222 + 49 nm"]),
     ("grain model per sample (scenes/showcase_grains.xml)",
      ROOT / "scenes" / "showcase_grains.xml",
-     ["1: aggl. of 17 nm", "2: aggl. of 16 nm", "3: aggl. of 16 nm", "4: aggl. of 15 nm",
-      "5: 83 + 46 nm", "6: aggl. 687 nm", "7: aggl. 2222 nm"]),
+     ["1: aggl.\nof 17 nm", "2: aggl.\nof 16 nm", "3: aggl.\nof 16 nm", "4: aggl.\nof 15 nm",
+      "5: 83 + 46 nm", "6: aggl.\n687 nm", "7: aggl.\n2222 nm"]),
 ]
 
 
@@ -105,7 +105,8 @@ def main() -> None:
         exr.unlink()
         ax.imshow(np.clip(img, 0, 1))
         for col, label in zip(dish_columns(width), labels, strict=True):
-            ax.text(col, height * 0.93, label, ha="center", va="top", fontsize=8, color="w")
+            ax.text(col, height * 0.98, label, ha="center", va="bottom", fontsize=8,
+                    color="w", linespacing=1.1)  # two lines where one would overlap
         ax.set_axis_off()
         ax.set_title(f"{title}; {result.variant}, {args.spp} spp, {width}x{height}, "
                      f"{result.seconds:.1f} s", fontsize=9)

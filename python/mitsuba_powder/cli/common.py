@@ -31,9 +31,20 @@ def _fixed_properties(items: list[str]) -> dict:
     return fixed
 
 
-def _names(text: str | None) -> list[str] | None:
-    """A comma-separated --free list (None when not given)."""
-    return [n.strip() for n in text.split(",") if n.strip()] if text else None
+def _names(text: str | None, option: str = "--free") -> list[str] | None:
+    """A comma-separated --free list (None when not given).
+
+    Raises:
+        ValueError: a list given but naming nothing (``--free ""``), which would otherwise
+            fall back to the defaults without a word.
+    """
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise ValueError(f"{option} {text!r} names no property; give a comma-separated list "
+                         f"(e.g. {option} albedo,g), or leave {option} out for the defaults")
+    return names
 
 
 def _load_data(path: str, args: argparse.Namespace):

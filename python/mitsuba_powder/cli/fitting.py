@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..outputs import final_path
-from .common import _load_data, _parse_define, _value
+from .common import _load_data, _names, _parse_define, _value
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
@@ -55,8 +55,7 @@ def _fit(args: argparse.Namespace, data, held_out, process) -> int:
 
     fixed = dict(_parse_define(d) for d in args.set)
     fixed = {k: _value(v) for k, v in fixed.items()}
-    free = ([n.strip() for n in args.free.split(",")] if args.free else
-            default_free(data, fixed))
+    free = _names(args.free) or default_free(data, fixed)
     print(f"fitting {len(data)} measurements at {data.wavelengths().tolist()} nm; "
           f"free: {', '.join(free)}; fixed: {fixed or 'plugin defaults'}")
     result = fit(data, free, fixed, starts=args.starts, polish=args.polish, seed=args.seed,
@@ -107,6 +106,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from ..io.measurements import Measurements, save_measurements
     from ..plugin.params import load_properties
 
+    if args.format == "csv" and args.layout != "multi":
+        raise ValueError(f"--layout {args.layout} applies to --format ipag; a CSV file holds "
+                         "every geometry (give --format ipag for a folder of single-geometry "
+                         "files)")
     wavelengths = args.wavelength or [700.0]
     parts = []
     for k, lam in enumerate(wavelengths):
@@ -138,7 +141,7 @@ def _cmd_compare_models(args: argparse.Namespace) -> int:
         data = data.subset(np.isin(data.wavelength, args.wavelength))
         if not len(data):
             raise ValueError(f"--wavelength {args.wavelength}: not in {args.data}")
-    free = [n.strip() for n in args.free.split(",")] if args.free else None
+    free = _names(args.free)
     fixed = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
     from ..fitting.comparison import surface_fresnel_settings
 

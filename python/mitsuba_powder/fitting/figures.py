@@ -53,6 +53,16 @@ def _margins(fig, left: float, right: float, bottom: float, top: float, **space)
                         top=1 - top / h, **space)
 
 
+def _suptitle(fig, text: str, fontsize: float = 9, **kwargs) -> None:
+    """A figure title wrapped to the figure's width (a narrow figure, e.g. one wavelength,
+    gets two or more lines instead of a title cut at its edges)."""
+    import textwrap
+
+    width_in = fig.get_size_inches()[0]
+    chars = max(20, int(width_in * 72 / (0.55 * fontsize)))  # a character is ~0.55 em wide
+    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize, **kwargs)
+
+
 def _save(fig, path: Path) -> None:
     """Write ``fig`` as PNG (zlib level 3: nearly the size of the default 6, less time)."""
     fig.savefig(path, dpi=DPI, pil_kwargs={"compress_level": 3})
@@ -125,9 +135,9 @@ def plot_principal_planes(result: FitFigures, wavelengths, path: Path) -> None:
     plane, signed = _signed_principal(d)
     wavelengths = [float(w) for w in wavelengths]
     n = len(wavelengths)
-    fig = _figure(0.9 + 3.0 * n, 3.6)
+    fig = _figure(0.9 + 3.0 * n, 3.6 + (0.3 if n == 1 else 0.0))
     axes = fig.subplots(1, n, sharex=True, squeeze=False)[0]
-    _margins(fig, 0.65, 0.15, 0.5, 0.5, wspace=0.25)
+    _margins(fig, 0.65, 0.15, 0.5, 0.8 if n == 1 else 0.5, wspace=0.25)
     for j, (ax, lam) in enumerate(zip(axes, wavelengths, strict=True)):
         sel = (d.wavelength == lam) & plane
         incidences = np.unique(d.theta_i[d.wavelength == lam])
@@ -147,8 +157,8 @@ def plot_principal_planes(result: FitFigures, wavelengths, path: Path) -> None:
         if j == 0:
             ax.set_ylabel("BRF", fontsize=8)
             ax.legend(fontsize=6)
-    fig.suptitle("plane of incidence (points: measured, joined per incidence; crosses: the fit "
-                 "at the same angles; + = back-scattering side)", fontsize=9)
+    _suptitle(fig, "plane of incidence (points: measured, joined per incidence; crosses: the "
+              "fit at the same angles; + = back-scattering side)")
     _save(fig, path)
 
 

@@ -22,7 +22,7 @@ PROVENANCE = [
     "NIST sintered PTFE BRDF, real measurements: T. A. Germer, 'Full four-dimensional and",
     "reciprocal Mueller matrix bidirectional reflectance distribution function of sintered",
     "polytetrafluoroethylene', Applied Optics 56(33), 9333 (2017).",
-    "Converted by mitsuba_powder.ptfe from PTFE.data.csv (the project's shared data folder):",
+    "Converted by mitsuba_powder.io.ptfe from PTFE.data.csv (the project's shared data folder):",
     "theta_i = |thetai|, theta_o = thetar, phi = phir - 180 (wrapped to (-180, 180]),",
     "wavelength = 1000 * lambda (nm), brf = pi * f_r11; Mueller elements dropped.",
 ]

@@ -191,14 +191,17 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
     state = _State(y=y, gains=data.gains, weights=wt,
                    value=np.zeros((npix, k, 3), dtype=np.float32),
                    chunks=pixel_chunks(npix, k, data.options.lanes))
-    total = data.options.rounds + (1 if fitted else 0)
+    rounds = data.options.rounds
+    total = rounds + (1 if fitted else 0)  # fitted gains: a last per-pixel fit under them
     previous = None  # the weights of the last round, when the gains did not move since
     for r in range(total):
         last = r == total - 1
         with_gains = fitted and not last
+        name = (f"round {r + 1}/{rounds}" if r < rounds else
+                "final fit under the fitted gains")
         if previous is not None and np.array_equal(previous, state.weights):
             # same gains, same flags: this round would repeat the last one exactly
-            log(f"round {r + 1}/{total}: observation flags unchanged, round {r} holds")
+            log(f"{name}: observation flags unchanged, the last round's fit holds")
             continue
         previous = None if with_gains else state.weights.copy()
         # every round starts from the Lambertian start under the current gains: a warm start
@@ -210,7 +213,7 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
             state.weights = data.flags(model)
         rms = np.sqrt(np.sum(state.weights[:, :, None] * (model - data.obs) ** 2)
                       / max(3 * np.sum(state.weights), 1))
-        log(f"round {r + 1}/{total}: Levenberg-Marquardt ({len(state.chunks)} chunk(s)), "
+        log(f"{name}: Levenberg-Marquardt ({len(state.chunks)} chunk(s)), "
             f"RMS residual {rms:.5g}, {int(np.sum(state.weights == 0))} observations left out")
     return state
 
