@@ -169,7 +169,9 @@ def test_cli_writes_the_files_of_each_mode(tmp_path, capsys, figures):
     argv = ["fit", str(csv), "--free", "g", "--starts", "2", "--polish", "1", "--out", str(out)]
     assert main(argv + ([] if figures is None else ["--figures", figures])) == 0
     printed = capsys.readouterr().out
-    written = {p.name for p in out.iterdir()}
+    manifest = out / MANIFEST.format(command="fit")
+    written = {p.name for p in out.iterdir()} - {manifest.name}
+    assert set(json.loads(manifest.read_text())) == written  # the result, whole
     if figures == "none":
         assert written == {"fit.json"}
         assert "no figures" in printed
