@@ -1,11 +1,17 @@
 """Shared test utilities: variants, plugin construction and vectorised evaluation, random
 parameter sets, the hemispherical reflectance and log messages of a plugin, chi-square adapters,
-and gradients against finite differences. Test modules import these from here, never from
+gradients against finite differences, and the packaging tests' commands, fresh virtual
+environments and value comparisons. Test modules import these from here, never from
 each other."""
 
 from __future__ import annotations
 
+import importlib.machinery
+import importlib.util
+import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import drjit as dr
@@ -470,3 +476,63 @@ def lambertian_capture(shape: tuple[int, int], lights: int, r: float = float("in
               * (g[:, None, None] * s)[..., None])
     return {"images": images, "directions": d, "normals": n, "reflectance": refl,
             "dirs": dirs, "s": s, "gains": g, "cos": cos}
+
+
+# Packaging: the wheel, the aarch64 build and builds against another mitsuba release
+
+#: The repository root, and the script that prints the plugin's values at fixed inputs
+ROOT = Path(__file__).resolve().parents[1]
+POWDER_VALUES = ROOT / "tools" / "powder_values.py"
+
+
+def run(cmd: list, timeout: float = 3600, **kw) -> subprocess.CompletedProcess:
+    """Run ``cmd``; fail the test with its output's tail if it fails."""
+    proc = subprocess.run([str(c) for c in cmd], capture_output=True, text=True,
+                          timeout=timeout, **kw)
+    assert proc.returncode == 0, (f"{' '.join(map(str, cmd))} exited {proc.returncode}:\n"
+                                  f"{(proc.stdout + proc.stderr)[-5000:]}")
+    return proc
+
+
+def clean_env(venv: Path) -> dict[str, str]:
+    """An environment whose PATH is ``venv``'s bin folder only (no compiler, no CMake), with
+    this machine's pip settings (index, certificates) and HOME (pip's cache)."""
+    keep = {k: v for k, v in os.environ.items()
+            if k.startswith("PIP_") or k in ("HOME", "LANG", "SSL_CERT_FILE", "TMPDIR")}
+    return {**keep, "PATH": str(venv / "bin")}
+
+
+def new_venv(path: Path) -> Path:
+    """A fresh virtual environment at ``path`` (this Python's version); its python."""
+    run([sys.executable, "-m", "venv", path])
+    return path / "bin" / "python"
+
+
+def powder_values(python: Path | str, variant: str, env: dict | None = None) -> dict:
+    """tools/powder_values.py's JSON for the plugin installed in ``python``'s environment."""
+    return json.loads(run([python, POWDER_VALUES, "--variant", variant], env=env,
+                          cwd="/").stdout)
+
+
+def load_script(name: str):
+    """A Python script of tools/ without a .py suffix (``check-aarch64``) as a module."""
+    loader = importlib.machinery.SourceFileLoader(name.replace("-", "_"),
+                                                  str(ROOT / "tools" / name))
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name,
+                                                                             loader))
+    loader.exec_module(module)
+    return module
+
+
+def max_relative_difference(a: dict, b: dict) -> float:
+    """Largest |x - y| / max(|x|, |y|) over every value of two tools/powder_values.py JSONs
+    (which must hold the same powders and quantities, as many values of each)."""
+    worst = 0.0
+    assert a["powders"].keys() == b["powders"].keys()
+    for name, quantities in a["powders"].items():
+        for q, xs in quantities.items():
+            ys = b["powders"][name][q]
+            assert len(xs) == len(ys) > 0, (name, q)
+            worst = max([worst] + [abs(x - y) / max(abs(x), abs(y), 1e-30)
+                                   for x, y in zip(xs, ys)])
+    return worst

@@ -30,15 +30,10 @@ class _HelpFormatter(argparse.HelpFormatter):
 
 
 def _version() -> str:
-    """The installed distribution's version (no import of mitsuba needed)."""
-    from importlib.metadata import PackageNotFoundError, version
+    """This package's version and the mitsuba and drjit releases it was built for."""
+    from .._versions import version_text
 
-    try:
-        return version("mitsuba-powder")
-    except PackageNotFoundError:  # run from a source tree that is not installed
-        from .. import __version__
-
-        return __version__
+    return version_text()
 
 
 def _add_set_option(p: argparse.ArgumentParser, text: str) -> None:
@@ -383,7 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Dry-powder reflectance (Gerardin et al. 2023) for Mitsuba 3.",
         formatter_class=_HelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"mitsuba-powder {_version()}")
+    parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", required=True)
 
     _add_info_parser(sub)
