@@ -128,13 +128,13 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
         std::vector<ScalarFloat> x(NormRadial), w(NormRadial);
         gauss_legendre01(NormInner, x.data(), w.data());
         gauss_legendre01(NormOuter, x.data() + NormInner, w.data() + NormInner);
-        FloatStorage gx = Tables::load(x), gw = Tables::load(w);
-        std::vector<FloatStorage> norm(C); // per channel, per block
+        FloatStorage gx = Tables::upload(x), gw = Tables::upload(w);
+        std::vector<FloatStorage> norms(C); // per channel, per block
         if constexpr (dr::is_jit_v<Float>) {
             auto [si, wo, weight] = lane(dr::arange<UInt32>(Blocks * NormQ), gx, gw);
             auto [ladder, coherent] = terms(si, si.wi, wo);
             for (uint32_t c = 0; c < C; ++c)
-                norm[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
+                norms[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
                                     dr::block_sum(coherent[c] * weight, NormQ), av);
         } else {
             std::vector<double> rl(Blocks * C, 0.0), rc(Blocks * C, 0.0);
@@ -150,12 +150,12 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
                 std::vector<ScalarFloat> v(Blocks);
                 for (uint32_t b = 0; b < Blocks; ++b)
                     v[b] = norm_from((ScalarFloat) rl[b * C + c], (ScalarFloat) rc[b * C + c], av);
-                norm[c] = Tables::load(v);
+                norms[c] = Tables::upload(v);
             }
         }
         // table entry wl * NormMu + nd, wl = group * C + c: block group * NormMu + nd of c
         std::vector<const FloatStorage *> source;
-        for (const FloatStorage &n : norm)
+        for (const FloatStorage &n : norms)
             source.push_back(&n);
         std::vector<uint32_t> which(NW * NormMu), index(NW * NormMu);
         for (uint32_t wl = 0; wl < NW; ++wl)
@@ -167,7 +167,7 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
     }
 
     /// The table as records of NormPacket entries for one packet gather per lookup
-    static FloatStorage records(const FloatStorage &norm) {
+    static FloatStorage records(const FloatStorage &table) {
         constexpr uint32_t P = NormPacket;
         const uint32_t n_rec = is_spectral_v<Spectrum> ? NW * NormMu : NormMu;
         std::vector<uint32_t> src(P * n_rec);
@@ -182,7 +182,7 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
                     src[P * r + e] = c * NormMu + kk;
                 }
             }
-        return Tables::gather_entries({ &norm }, std::vector<uint32_t>(src.size(), 0u), src);
+        return Tables::gather_entries({ &table }, std::vector<uint32_t>(src.size(), 0u), src);
     }
 
     /// N at incidence mu_i and the channel wavelengths lam (um) from the records

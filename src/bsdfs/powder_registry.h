@@ -32,6 +32,11 @@ namespace powder_param {
 
 constexpr double Inf = std::numeric_limits<double>::infinity();
 
+/// The wavelength grid of spectral variants' tables: TableSize nodes TableStep nm apart from
+/// TableMin nm (360..830 nm, the range of Mitsuba's spectral variants)
+inline constexpr int TableSize = 471;
+inline constexpr float TableMin = 360.f, TableStep = 1.f;
+
 /// Valid values of a parameter: an interval with open or closed ends
 struct Range {
     double lo, hi;

@@ -119,7 +119,7 @@ template <typename Float, typename Spectrum> struct PowderTextures {
 
     /// A single-scattering albedo must lie in [0, 1] (the minimum is checked where the
     /// texture is uniform and can be evaluated in this variant)
-    static void check_albedo(const Texture *albedo, int table_size, float table_min) {
+    static void check_albedo(const Texture *albedo) {
         ScalarFloat max_value;
         try {
             max_value = albedo->max();
@@ -133,7 +133,7 @@ template <typename Float, typename Spectrum> struct PowderTextures {
             return;
         ScalarFloat min_value;
         try {
-            min_value = minimum(albedo, table_size, table_min);
+            min_value = least_value(albedo);
         } catch (const std::exception &) {
             return; // this texture type cannot be evaluated in this variant
         }
@@ -142,9 +142,11 @@ template <typename Float, typename Spectrum> struct PowderTextures {
                   "single-scattering albedo must lie in [0, 1]", (double) min_value);
     }
 
-    /// Smallest value of a spatially uniform texture (over the 1 nm grid of table_size
-    /// wavelengths from table_min in spectral variants), detached
-    static ScalarFloat minimum(const Texture *texture, int table_size, float table_min) {
+    /// Smallest value of a spatially uniform texture (over the 1 nm grid of the spectral
+    /// tables in spectral variants, powder_registry.h), detached
+    static ScalarFloat least_value(const Texture *texture) {
+        constexpr int table_size = powder_param::TableSize;
+        constexpr float table_min = powder_param::TableMin;
         ScalarFloat result = std::numeric_limits<ScalarFloat>::infinity();
         int steps = is_spectral_v<Spectrum> ? (table_size + 3) / 4 : 1;
         for (int i = 0; i < steps; ++i) {
