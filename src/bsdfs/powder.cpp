@@ -50,7 +50,7 @@ Dry powder (:monosp:`powder`)
 
  * - radius
    - |float| or |texture|
-   - Grain radius r in micrometres, without ``albedo``; the crystallite radius with
+   - Grain radius r in micrometres; an error with ``albedo``; the crystallite radius with
      agglomerates, where it only sets the size-parameter warning (Default: 0.017, range
      (0, inf); size parameter 2 pi r / lambda in [1e-3, 200] for spheres)
    - |exposed|, |differentiable| (not with agglomerates)

@@ -169,12 +169,12 @@ inline std::pair<powder::GrainModel, powder::Mixing> read_grain_model(const Prop
     return { (powder::GrainModel) model, (powder::Mixing) mixing };
 }
 
-/// (wavelengths in nm, values) of a float or spectrum property; a uniform
+/// (wavelengths in nm, values) of a float (or integer) or spectrum property; a uniform
 /// value gets a wavelength list spanning everything
 inline std::pair<std::vector<double>, std::vector<double>>
 read_spectrum(const Properties &props, const char *name) {
     auto type = props.type(name);
-    if (type == Properties::Type::Float) {
+    if (type == Properties::Type::Float || type == Properties::Type::Integer) {
         double v = props.get<double>(name);
         return { { 1.0, 1e6 }, { v, v } };
     }

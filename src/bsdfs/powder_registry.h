@@ -253,9 +253,10 @@ inline constexpr std::array<const char *, 6> GrainProperties = {
     "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
 };
 
-/// The properties a given `albedo` replaces (an error together with it)
-inline constexpr std::array<const char *, 4> AlbedoExcludes = {
-    "grains", "agglomerate_radius", "agglomerate_fill", "mixing"
+/// The properties a given `albedo` replaces (an error together with it): the grain model
+/// and every property of the grains
+inline constexpr std::array<const char *, 7> AlbedoExcludes = {
+    "grains", "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
 };
 
 /// A grain model (a value of `grains`, in the order of ChoiceTable[Grains]): the parameter

@@ -165,11 +165,14 @@ def test_multiple_scattering_at_exact_wavelengths(variant):
 
 
 def test_albedo_property_overrides_mie():
+    """A given albedo replaces Mie's (the radius beside it is an error: it would be ignored)."""
     use_variant("scalar_rgb")
-    bsdf = mi.load_dict({"type": "powder", "albedo": 0.42, "radius": 0.5})
+    bsdf = mi.load_dict({"type": "powder", "albedo": 0.42})
     assert np.allclose(np.array(bsdf.eval_attribute("albedo", mi.SurfaceInteraction3f())), 0.42)
     keys = mi.traverse(bsdf).keys()
     assert "albedo.value" in keys and "radius" not in keys
+    with pytest.raises(RuntimeError, match='"radius" has no effect together with "albedo"'):
+        mi.load_dict({"type": "powder", "albedo": 0.42, "radius": 0.5})
 
 
 def loss(bsdf, n=500, as_float64=False):
