@@ -77,7 +77,7 @@ Dry powder (:monosp:`powder`)
  * - agglomerate_fill
    - |float| or |texture|
    - Volume fill f of crystallites in an agglomerate, ``grains`` = ``agglomerate`` only
-     (Default: 0.5, range (0, 1])
+     (Default: 0.5, range [1e-06, 1])
    - |exposed|, |differentiable|
 
  * - mixing
@@ -93,11 +93,11 @@ Dry powder (:monosp:`powder`)
  * - eta, k
    - |float| or |spectrum|
    - Optical constants n and k of the grain material, instead of ``material``; both or
-     neither (Default: from ``material``, range eta > 0, k >= 0)
+     neither (Default: from ``material``, range eta in [0.001, 1000], k in [0, 1000])
 
  * - amplitude_volume
    - |float| or |texture|
-   - Amplitude A_v of the volume terms (Default: 1.0, range [0, inf))
+   - Amplitude A_v of the volume terms (Default: 1.0, range [0, 1e+16])
    - |exposed|, |differentiable|
 
  * - g
@@ -107,13 +107,13 @@ Dry powder (:monosp:`powder`)
 
  * - extinction
    - |float| or |texture|
-   - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range (0, inf))
+   - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range [1e-08, inf))
    - |exposed|, |differentiable|
 
  * - tau_o
    - |float| or |texture|
    - Extrapolation ratio of the diffusion boundary; exposed only when given
-     (Default: from Fresnel of Re(eta), range [0, inf))
+     (Default: from Fresnel of Re(eta), range [0, 1e+20])
    - |exposed|, |differentiable|
 
  * - thickness
@@ -124,13 +124,13 @@ Dry powder (:monosp:`powder`)
  * - amplitude_surface
    - |float| or |texture|
    - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian)
-     (Default: 0.0, range [0, inf))
+     (Default: 0.0, range [0, 1e+06])
    - |exposed|, |differentiable|
 
  * - correlation_length
    - |float| or |texture|
    - Correlation length l_c of the surface in micrometres, Harvey-Shack only
-     (Default: 1.0, range (0, inf))
+     (Default: 1.0, range (0, 1e+08])
    - |exposed|, |differentiable|
 
  * - specular
@@ -148,7 +148,7 @@ Dry powder (:monosp:`powder`)
  * - sigma
    - |float| or |texture|
    - Half width of the Gaussian surface lobe in radians, Gaussian only (Default: 0.1,
-     range (0, pi/2])
+     range [1e-18, pi/2])
    - |exposed|, |differentiable|
 
  * - lobes
@@ -173,11 +173,11 @@ Dry powder (:monosp:`powder`)
  * - wavelength
    - |float|
    - Wavelength in nm at which mono variants evaluate the model (Default: 700,
-     range (0, inf))
+     range [1, 1e+06])
 
  * - rgb_wavelengths
    - |string|
-   - Wavelengths in nm of the R, G, B channels in RGB variants
+   - Wavelengths in nm of the R, G, B channels in RGB variants, each in [1, 1e+06]
      (Default: ``611.3, 549.1, 464.3``)
 
 The float parameters and their defaults and ranges are those of the table

@@ -139,9 +139,9 @@ inline std::array<double, 3> parse_rgb_wavelengths(const std::string &spec) {
         if (end == items[i].c_str() || *end != '\0')
             Throw("powder: property \"rgb_wavelengths\" = \"%s\": \"%s\" is not a "
                   "number", spec, items[i]);
-        if (!(v > 0.0) || !std::isfinite(v))
+        if (!WavelengthNumber.range.contains(v))
             Throw("powder: property \"rgb_wavelengths\" = \"%s\": wavelength %g is "
-                  "out of range; valid range is (0, inf) nm", spec, v);
+                  "out of range; valid range is %s nm", spec, v, WavelengthNumber.range.str());
         out[i] = v;
     }
     return out;
@@ -170,18 +170,19 @@ inline std::pair<powder::GrainModel, powder::Mixing> read_grain_model(const Prop
 }
 
 /// (wavelengths in nm, values) of a float (or integer) or spectrum property; a uniform
-/// value gets a wavelength list spanning everything
+/// value gets a wavelength list spanning every accepted wavelength
 inline std::pair<std::vector<double>, std::vector<double>>
 read_spectrum(const Properties &props, const char *name) {
     auto type = props.type(name);
     if (type == Properties::Type::Float || type == Properties::Type::Integer) {
         double v = props.get<double>(name);
-        return { { 1.0, 1e6 }, { v, v } };
+        return { { WavelengthNumber.range.lo, WavelengthNumber.range.hi }, { v, v } };
     }
     if (type == Properties::Type::Spectrum) {
         Properties::Spectrum spec = props.get<Properties::Spectrum>(name);
         if (spec.is_uniform())
-            return { { 1.0, 1e6 }, { spec.values[0], spec.values[0] } };
+            return { { WavelengthNumber.range.lo, WavelengthNumber.range.hi },
+                     { spec.values[0], spec.values[0] } };
         for (size_t i = 1; i < spec.wavelengths.size(); ++i)
             if (!(spec.wavelengths[i] > spec.wavelengths[i - 1]))
                 Throw("powder: property \"%s\": wavelengths must increase (%g nm "

@@ -187,7 +187,9 @@ template <typename Float, typename Spectrum> struct PowderSampling {
                                        Frame3f::cos_theta(wi), width);
     }
 
-    /// The density of the mixture (cosine, coherent and surface lobes with the weights w)
+    /// The density of the mixture (cosine, coherent and surface lobes with the weights w).
+    /// A lobe of weight 0 adds nothing, whatever its density (a surface lobe far wider than
+    /// the disc, e.g. l_c -> 0, has none in single precision)
     static Float pdf(const Params &p, const Lobes &lobes, const SurfaceInteraction3f &si,
                      const Vector3f &wo, const LobeWeights &w, Mask active) {
         Float mu_o = Frame3f::cos_theta(wo);
@@ -195,7 +197,8 @@ template <typename Float, typename Spectrum> struct PowderSampling {
         if (lobes.coherent)
             density += w.coherent * pdf_coherent(si.wi, wo, w.width_coherent);
         if (lobes.surface)
-            density += w.surface * pdf_surface(p, si.wi, wo, w.width_surface);
+            density += dr::select(w.surface > 0.f,
+                                  w.surface * pdf_surface(p, si.wi, wo, w.width_surface), 0.f);
         return dr::select(active && mu_o > 0.f, density, 0.f);
     }
 

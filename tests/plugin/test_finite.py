@@ -1,17 +1,220 @@
-"""Inputs the plugin took wrongly (found by trying to break it, issue 33): an albedo with a grain
-size (silently ignored; now an error, as the grain model is), integers where floats are taken
-(an integer ``k`` was refused; now accepted wherever a float is)."""
+"""Accepted values evaluate to finite numbers: the plugin accepts each float property and
+number over the range in which eval, pdf and sample stay finite, with every other property
+anywhere in its own range (docs/model.md, "Valid ranges"), at direction pairs down to
+mu = 1e-7 (tests/helpers.py, extreme_directions); just outside the range it refuses the value,
+naming the property and the range. And the cases found by trying to break the plugin:
+``extinction = 1e-20``, ``correlation_length = 1e20`` with a surface term and
+``amplitude_volume = 1e38`` (refused), an albedo with a grain size (an error), integers where
+floats are taken (accepted)."""
 
 from __future__ import annotations
 
+import math
+
 import mitsuba as mi
+import numpy as np
 import pytest
 
-from helpers import use_variant
+from helpers import (
+    evaluate,
+    extreme_directions,
+    extreme_samples,
+    is_scalar,
+    sample,
+    use_variant,
+)
 from mitsuba_powder import _optics
 
 VARIANTS = ["scalar_rgb", "llvm_ad_rgb"]
 RANGES = _optics.property_ranges()
+ENDS = _optics.property_range_ends()
+#: the largest float below 1 and the largest finite float (single precision: what the plugin
+#: stores)
+BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
+FLOAT_MAX = float(np.finfo(np.float32).max)
+FLOAT_TINY = float(np.finfo(np.float32).tiny)  # the smallest normal float
+#: the size parameters Mie theory accepts, and the wavelengths of the RGB variants (nm)
+MIE_X = (1e-3, 200.0)
+RGB = (611.3, 549.1, 464.3)
+
+#: what each property needs beside it to be in use (and to act on eval)
+CONTEXT = {
+    "amplitude_volume": {"albedo": 1.0},
+    "g": {"albedo": 0.8},
+    "extinction": {"albedo": 0.8},
+    "tau_o": {"albedo": 1.0},
+    "thickness": {"albedo": 0.8},
+    "amplitude_surface": {"albedo": 0.8},
+    "correlation_length": {"albedo": 0.8, "amplitude_surface": 1e-3},
+    "sigma": {"albedo": 0.8, "specular": "gaussian", "amplitude_surface": 1.0},
+    "radius": {"grains": "slab"},
+    "radius2": {"grains": "slab", "radius": 1.0, "fraction2": 0.3},
+    "fraction2": {"grains": "slab", "radius": 1.0, "radius2": 0.1},
+    "agglomerate_radius": {"grains": "agglomerate"},
+    "agglomerate_fill": {"grains": "agglomerate", "agglomerate_radius": 0.15},
+    "eta": {"k": 0.0, "surface_fresnel": "fresnel", "amplitude_surface": 1e-3},
+    "k": {"eta": 1.5, "surface_fresnel": "fresnel", "amplitude_surface": 1e-3},
+    "wavelength": {"albedo": 0.8, "eta": 1.5, "k": 0.0, "amplitude_surface": 1e-3},
+}
+
+
+def accepted_range(name: str) -> tuple[float, float, bool, bool]:
+    """(lo, hi, lo closed, hi closed) of a property as the RGB variants accept it: the
+    registry's, narrowed by the size parameters of Mie theory for agglomerates."""
+    (lo, hi), (lo_closed, hi_closed) = RANGES[name], ENDS[name]
+    if name == "agglomerate_radius":
+        lo = MIE_X[0] * max(RGB) * 1e-3 / (2 * math.pi) * (1 + 1e-5)
+        hi = MIE_X[1] * min(RGB) * 1e-3 / (2 * math.pi) * (1 - 1e-5)
+        lo_closed = hi_closed = True
+    return lo, hi, lo_closed, hi_closed
+
+
+def end_values(name: str) -> tuple[list[float], list[float]]:
+    """(values inside the range at and next to its ends, values just outside it), in single
+    precision as the plugin stores them: a closed end and the next float inwards (outwards:
+    the next float beyond it); an open end's next float inwards (the largest finite float for
+    an infinite end, the smallest normal float for an end at 0) and, outside, the end itself."""
+    lo, hi, lo_closed, hi_closed = accepted_range(name)
+    if name == "agglomerate_radius":  # Mie's size parameters, with its relative slack 1e-6
+        return [lo, hi], [lo * (1 - 1e-4), hi * (1 + 1e-4)]
+    inside, outside = [], []
+    for end, closed, inwards, outwards in ((lo, lo_closed, hi, -math.inf),
+                                           (hi, hi_closed, lo, math.inf)):
+        e = np.float32(end)
+        step_in = float(np.nextafter(e, np.float32(inwards)))
+        if closed:
+            inside += [float(e), step_in]
+            if not math.isinf(end):
+                outside.append(float(np.nextafter(e, np.float32(outwards))))
+        else:
+            inside.append(FLOAT_MAX if math.isinf(end) else
+                          FLOAT_TINY if end == 0 else step_in)
+            outside.append(end)
+    return inside, outside
+
+
+def props_with(name: str, value: float) -> dict:
+    props = {"type": "powder", **CONTEXT[name]}
+    if name == "wavelength":  # RGB variants evaluate the rgb_wavelengths
+        props["rgb_wavelengths"] = f"{value!r}, {value!r}, {value!r}"
+    else:
+        props[name] = value
+    return props
+
+
+def assert_finite(props: dict, label: str, n: int | None = None) -> None:
+    """eval, pdf (and, in JIT variants, sample) of the powder are finite and non-negative at
+    the extreme direction pairs of tests/helpers.py."""
+    n = n or (96 if is_scalar() else 2000)
+    rng = np.random.default_rng(8)
+    wi, wo = extreme_directions(n, rng)
+    lam = None
+    if mi.is_spectral:
+        lam = np.sort(rng.uniform(360.0, 830.0, (n, 4)), axis=1)
+    bsdf = mi.load_dict(props)
+    value, pdf = evaluate(bsdf, wi, wo, lam, what="eval_pdf")
+    assert np.all(np.isfinite(value)) and np.all(value >= 0), label
+    assert np.all(np.isfinite(pdf)) and np.all(pdf >= 0), label
+    if not is_scalar():
+        s1, s2 = extreme_samples(n, rng)
+        swo, spdf, weight = sample(bsdf, wi, s1, s2, lam)
+        assert np.all(np.isfinite(swo)) and np.all(np.isfinite(spdf)), label
+        assert np.all(np.isfinite(weight)) and np.all(weight >= 0), label
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("name", sorted(CONTEXT))
+def test_each_property_is_finite_at_the_ends_of_its_range(variant, name):
+    """At each end of its accepted range and next to it, each property gives finite values;
+    just outside, it is refused with the range (the others in their default ranges)."""
+    use_variant(variant)
+    inside, outside = end_values(name)
+    for value in inside:
+        assert_finite(props_with(name, value), f"{name} = {value!r}")
+    shown = "rgb_wavelengths" if name == "wavelength" else name
+    for value in outside:
+        with pytest.raises(RuntimeError, match=f'"{shown}".*out of range|{shown}.*valid range'):
+            mi.load_dict(props_with(name, value))
+
+
+def test_the_sweep_covers_every_numeric_property():
+    assert set(CONTEXT) == set(RANGES)
+
+
+def corners() -> dict[str, dict]:
+    """Powders with several properties at the ends of their ranges at once, where their
+    effects multiply (docs/model.md, "Valid ranges"): the volume terms (A_v, tau_o, albedo,
+    g), the cone (extinction and wavelength), the Harvey-Shack and Gaussian surface terms
+    (amplitude, correlation length or sigma, wavelength), the optical constants."""
+    top = {n: max(end_values(n)[0]) for n in ("amplitude_volume", "tau_o",
+                                              "amplitude_surface", "correlation_length")}
+    low = {n: min(end_values(n)[0]) for n in ("extinction", "correlation_length", "sigma",
+                                              "eta")}
+    wl_lo, wl_hi = (f"{v!r}, {v!r}, {v!r}" for v in RANGES["wavelength"])
+    index = {"eta": 1.5, "k": 0.0}
+    return {
+        "volume, g -> -1": {"albedo": 1.0, "amplitude_volume": top["amplitude_volume"],
+                            "tau_o": top["tau_o"], "g": -BELOW_ONE},
+        "volume, g -> 1": {"albedo": 1.0, "amplitude_volume": top["amplitude_volume"],
+                           "tau_o": top["tau_o"], "g": BELOW_ONE, "thickness": 1e-30},
+        "narrowest cone, shortest wavelength": {
+            "albedo": 1.0, "extinction": low["extinction"], "tau_o": top["tau_o"],
+            "amplitude_volume": top["amplitude_volume"], "rgb_wavelengths": wl_lo, **index},
+        "widest cone": {"albedo": 0.3, "extinction": FLOAT_MAX, "thickness": FLOAT_TINY,
+                        "rgb_wavelengths": wl_hi, **index},
+        "sharpest surface lobe, shortest wavelength": {
+            "albedo": 0.8, "amplitude_surface": top["amplitude_surface"],
+            "correlation_length": top["correlation_length"], "rgb_wavelengths": wl_lo,
+            **index},
+        "broadest surface lobe, longest wavelength": {
+            "albedo": 0.8, "amplitude_surface": top["amplitude_surface"],
+            "correlation_length": low["correlation_length"], "rgb_wavelengths": wl_hi,
+            **index},
+        "sharpest Gaussian lobe": {"albedo": 1.0, "specular": "gaussian",
+                                   "amplitude_surface": top["amplitude_surface"],
+                                   "sigma": low["sigma"],
+                                   "amplitude_volume": top["amplitude_volume"]},
+        "extreme index, Fresnel factor": {
+            "eta": low["eta"], "k": RANGES["k"][1], "surface_fresnel": "fresnel",
+            "amplitude_surface": top["amplitude_surface"], "radius": 0.05,
+            "amplitude_volume": top["amplitude_volume"]},
+        "largest index, Fresnel tau_o": {"eta": RANGES["eta"][1], "k": 0.0, "albedo": 1.0,
+                                         "amplitude_volume": top["amplitude_volume"]},
+        "conserving": {"albedo": 1.0, "energy": "conserving", "tau_o": top["tau_o"],
+                       "amplitude_volume": top["amplitude_volume"],
+                       "extinction": low["extinction"], "g": BELOW_ONE},
+    }
+
+
+@pytest.mark.parametrize("variant", VARIANTS + ["llvm_ad_spectral"])
+@pytest.mark.parametrize("corner", sorted(corners()))
+def test_extremes_together_are_finite(variant, corner):
+    use_variant(variant)
+    props = corners()[corner]
+    if mi.is_spectral:  # spectral variants evaluate 360-830 nm, not the rgb_wavelengths
+        props = {k: v for k, v in props.items() if k != "rgb_wavelengths"}
+    assert_finite({"type": "powder", **props}, corner)
+
+
+# ------------------------------------------------------------ the cases of issue 33
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("props,name", [
+    ({"extinction": 1e-20}, "extinction"),
+    ({"correlation_length": 1e20, "amplitude_surface": 1e-4}, "correlation_length"),
+    ({"amplitude_volume": 1e38}, "amplitude_volume"),
+    ({"tau_o": 1e38}, "tau_o"),
+    ({"eta": 1e6, "k": 0.0}, "eta"),
+    ({"specular": "gaussian", "sigma": 1e-30, "amplitude_surface": 1.0}, "sigma"),
+], ids=["extinction 1e-20", "correlation_length 1e20", "amplitude_volume 1e38", "tau_o 1e38",
+        "eta 1e6", "sigma 1e-30"])
+def test_values_that_evaluated_to_nan_or_inf_are_refused(variant, props, name):
+    """Each of these loaded before and gave NaN or inf in eval (eta: tau_o from Fresnel)."""
+    use_variant(variant)
+    with pytest.raises(RuntimeError, match=f'property "{name}" = .* is out of range; valid '
+                                           r"range is [\[(]"):
+        mi.load_dict({"type": "powder", **props})
+
 
 @pytest.mark.parametrize("name,value", [("radius", 3.0), ("radius2", 0.5), ("fraction2", 0.3)])
 def test_albedo_with_a_grain_size_is_an_error(name, value):
