@@ -251,6 +251,7 @@ public:
         for (uint32_t c : m_components)
             m_flags |= c;
         parameters_changed();
+        warn_reflects_more_than_received();
     }
 
     void traverse(TraversalCallback *cb) override {
@@ -500,6 +501,64 @@ private:
         l.coherent = lobes.coherent && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_coherent);
         l.surface = lobes.surface && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_surface);
         return l;
+    }
+
+    /**
+     * energy = "paper": warn when the ladder terms reflect more than the light they receive
+     * at normal incidence (powder::ladder_reflectance_normal) at a wavelength of the grain
+     * tables, e.g. a white powder with the Fresnel tau_o of its material (docs/powder.md,
+     * "Energy"); textured parameters at their largest values (g: both ends), an albedo from
+     * spatially varying grains at its mean
+     */
+    void warn_reflects_more_than_received() const {
+        using namespace powder_param;
+        const Params &p = m_params;
+        if (p.conserving || !(p.lobes.single || p.lobes.multiple))
+            return;
+        auto largest = [&](Id id) {
+            return p.textured(id) ? p.texture_values(id).hi : Params::value_of(p[id]);
+        };
+        size_t n = m_grains.table_wavelengths.size();
+        std::vector<ScalarFloat> rho(n, (ScalarFloat) m_grains.grain_rho_mean),
+            tau = p.tau_given ? std::vector<ScalarFloat>(n, (ScalarFloat) largest(TauO))
+                              : Tables::download(m_grains.tau_table);
+        if (p.albedo && p.albedo->is_spatially_varying()) {
+            ScalarFloat max_value = 1.f;
+            try {
+                max_value = p.albedo->max();
+            } catch (const std::exception &) {
+                // this texture type cannot report its maximum: at most 1
+            }
+            rho.assign(n, max_value);
+        } else if (p.albedo)
+            rho = PowderTextures<Float, Spectrum>::grid_values(p.albedo.get());
+        else if (!p.grain_textured())
+            rho = Tables::download(m_grains.mie.rho);
+        std::vector<double> gs{ Params::value_of(p.g) };
+        if (p.textured(G))
+            gs = { p.texture_values(G).lo, p.texture_values(G).hi };
+        double d = p.textured(Thickness) ? Inf : Params::value_of(p.thickness),
+               worst = 0.0;
+        size_t at = 0;
+        for (size_t i = 0; i < n; ++i)
+            for (double g : gs) {
+                double r = powder::ladder_reflectance_normal(
+                    rho[i], g, tau[i], largest(AmplitudeVolume), largest(Extinction), d,
+                    p.lobes.single, p.lobes.multiple);
+                if (r > worst) {
+                    worst = r;
+                    at = i;
+                }
+            }
+        if (worst > 1.0)
+            Log(Warn,
+                "powder: this powder reflects %.4g times the light it receives at normal "
+                "incidence (energy = \"paper\": the ladder terms L1 + L2 at %g nm, albedo "
+                "%g, tau_o %g): more than it receives, which no powder does; the extrapolation "
+                "ratio tau_o of the diffusion approximation makes a bright powder brighter "
+                "than white (see docs/powder.md, \"Energy\"). Use energy = \"conserving\" "
+                "(at most 1), or a smaller albedo, tau_o or amplitude_volume",
+                worst, m_grains.table_wavelengths[at], (double) rho[at], (double) tau[at]);
     }
 
     // ---------------------------------------------------- volume constants

@@ -89,6 +89,17 @@ template <typename Float, typename Spectrum> struct PowderTables {
         return dr::load<FloatStorage>(v.data(), v.size());
     }
 
+    /// The entries of a table on the host, detached
+    static std::vector<ScalarFloat> download(const FloatStorage &t) {
+        std::vector<ScalarFloat> v(dr::width(t));
+        if constexpr (dr::is_jit_v<Float>)
+            dr::store(v.data(), dr::detach(t));
+        else
+            for (size_t i = 0; i < v.size(); ++i)
+                v[i] = t[i];
+        return v;
+    }
+
     /// Spectral variants: each channel's position in the 1 nm grid (entry floor(t),
     /// weight t - floor(t) of the next), clamped inside the table
     static UnpolarizedSpectrum table_position(const SurfaceInteraction3f &si) {

@@ -13,6 +13,7 @@
 
 #include <exception>
 #include <limits>
+#include <vector>
 
 #include "powder_registry.h"
 
@@ -145,24 +146,50 @@ template <typename Float, typename Spectrum> struct PowderTextures {
     /// Smallest value of a spatially uniform texture (over the 1 nm grid of the spectral
     /// tables in spectral variants, powder_registry.h), detached
     static ScalarFloat least_value(const Texture *texture) {
-        constexpr int table_size = powder_param::TableSize;
-        constexpr float table_min = powder_param::TableMin;
         ScalarFloat result = std::numeric_limits<ScalarFloat>::infinity();
-        int steps = is_spectral_v<Spectrum> ? (table_size + 3) / 4 : 1;
-        for (int i = 0; i < steps; ++i) {
-            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
-            if constexpr (is_spectral_v<Spectrum>)
-                for (size_t j = 0; j < 4; ++j)
-                    si.wavelengths[j] = dr::minimum(table_min + (4 * i + j),
-                                                    table_min + (table_size - 1));
+        for (ScalarFloat v : grid_values(texture))
+            result = std::min(result, v);
+        return result;
+    }
+
+    /// The values of a spatially uniform texture at the wavelengths of the grain tables: the
+    /// channels (RGB, mono), or the 1 nm grid of the spectral tables (powder_registry.h),
+    /// detached
+    static std::vector<ScalarFloat> grid_values(const Texture *texture) {
+        constexpr int table_size = powder_param::TableSize;
+        constexpr float table_min = powder_param::TableMin, table_max = table_min + (table_size - 1);
+        constexpr size_t C = dr::size_v<UnpolarizedSpectrum>;
+        // lane i holds the wavelengths 4 i + c of the grid (spectral) in its channels c
+        uint32_t lanes = is_spectral_v<Spectrum> ? (uint32_t) (table_size + 3) / 4 : 1;
+        std::vector<ScalarFloat> result(lanes * C);
+        if constexpr (dr::is_jit_v<Float>) { // every lane in one evaluation
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(lanes);
+            if constexpr (is_spectral_v<Spectrum>) {
+                UInt32 i = dr::arange<UInt32>(lanes);
+                for (uint32_t c = 0; c < C; ++c)
+                    si.wavelengths[c] = dr::minimum(table_min + Float(4u * i + c), table_max);
+            }
             UnpolarizedSpectrum v = dr::detach(texture->eval(si));
-            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
-                if constexpr (dr::is_jit_v<Float>)
-                    result = std::min(result, (ScalarFloat) dr::slice(v[j], 0));
-                else
-                    result = std::min(result, (ScalarFloat) v[j]);
+            std::vector<ScalarFloat> channel(lanes);
+            for (size_t c = 0; c < C; ++c) {
+                // (a texture that does not depend on the wavelength returns one value)
+                dr::store(channel.data(), v[c] + dr::zeros<Float>(lanes));
+                for (uint32_t i = 0; i < lanes; ++i)
+                    result[i * C + c] = channel[i];
+            }
+        } else {
+            for (uint32_t i = 0; i < lanes; ++i) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                if constexpr (is_spectral_v<Spectrum>)
+                    for (uint32_t c = 0; c < C; ++c)
+                        si.wavelengths[c] = std::min(table_min + (float) (4 * i + c), table_max);
+                UnpolarizedSpectrum v = texture->eval(si);
+                for (size_t c = 0; c < C; ++c)
+                    result[i * C + c] = v[c];
             }
         }
+        if (is_spectral_v<Spectrum>)
+            result.resize(table_size); // the last lane repeats the last node
         return result;
     }
 };

@@ -5,7 +5,7 @@ mu = 1e-7 (tests/helpers.py, extreme_directions); just outside the range it refu
 naming the property and the range. And the cases found by trying to break the plugin:
 ``extinction = 1e-20``, ``correlation_length = 1e20`` with a surface term and
 ``amplitude_volume = 1e38`` (refused), an albedo with a grain size (an error), integers where
-floats are taken (accepted)."""
+floats are taken (accepted), a powder that reflects more than it receives (a warning)."""
 
 from __future__ import annotations
 
@@ -20,10 +20,12 @@ from helpers import (
     extreme_directions,
     extreme_samples,
     is_scalar,
+    load_and_capture,
     sample,
     use_variant,
 )
 from mitsuba_powder import _optics
+from oracles.model import Params, brdf
 
 VARIANTS = ["scalar_rgb", "llvm_ad_rgb"]
 RANGES = _optics.property_ranges()
@@ -268,3 +270,45 @@ def test_integers_in_spectra_textures_and_lists(variant):
         mi.load_dict({"type": "powder", "albedo": albedo, "tau_o": 0})
     assert str(mi.load_dict({"type": "powder", "rgb_wavelengths": [600, 550, 450]})) == \
         str(mi.load_dict({"type": "powder", "rgb_wavelengths": "600, 550, 450"}))
+
+
+def normal_reflectance(rho: float, g: float, tau: float, lam_nm: float) -> float:
+    """What L1 + L2 reflect at normal incidence (A_v = 1): the midpoint rule on 20000 cosines
+    with the NumPy model of tests/oracles/model.py."""
+    n = 20000
+    mu = (np.arange(n) + 0.5) / n
+    wo = np.stack([np.sqrt(1 - mu * mu), np.zeros(n), mu], 1)
+    wi = np.tile([0.0, 0.0, 1.0], (n, 1))
+    p = Params(g=g, tau_o=tau, lobes=("single", "multiple"))
+    f = brdf(wi, wo, np.full((n, 1), rho), np.full((n, 1), lam_nm), p)[:, 0]
+    return float(2 * np.pi * np.sum(f * mu) / n)
+
+
+@pytest.mark.parametrize("variant", VARIANTS + ["llvm_ad_spectral"])
+def test_a_white_powder_warns_that_it_reflects_more_than_it_receives(variant):
+    """albedo = 1 with the default material (tau_o from hematite's index, about 18) reflects
+    about 14 times the light it receives at normal incidence with energy = "paper": a warning
+    at load time gives the factor (within 1e-3 of the NumPy model), the wavelength, the
+    albedo and tau_o."""
+    use_variant(variant)
+    warnings = [w for w in load_and_capture({"type": "powder", "albedo": 1.0})
+                if "times the light it receives" in w]
+    assert len(warnings) == 1, warnings
+    text = warnings[0]
+    factor = float(text.split("reflects ")[1].split(" times")[0])
+    lam = float(text.split(" nm")[0].split(" at ")[-1])
+    tau = float(text.split("tau_o ")[1].split(")")[0])
+    assert factor > 13, text
+    assert factor == pytest.approx(normal_reflectance(1.0, 0.0, tau, lam), rel=1e-3), text
+    assert 'energy = "conserving"' in text and "docs/powder.md" in text, text
+
+
+@pytest.mark.parametrize("props", [
+    {}, {"albedo": 0.8}, {"albedo": 1.0, "tau_o": 2.0 / 3.0},
+    {"albedo": 1.0, "energy": "conserving"}, {"albedo": 1.0, "lobes": "coherent, surface"},
+    {"albedo": 1.0, "amplitude_volume": 0.05},
+], ids=["default", "albedo 0.8", "white, tau_o 2/3", "conserving", "no ladder", "A_v 0.05"])
+def test_powders_that_reflect_less_than_they_receive_do_not_warn(props):
+    use_variant("llvm_ad_rgb")
+    assert not [w for w in load_and_capture({"type": "powder", **props})
+                if "times the light it receives" in w]
