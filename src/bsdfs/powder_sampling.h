@@ -197,8 +197,8 @@ template <typename Float, typename Spectrum> struct PowderSampling {
         if (lobes.coherent)
             density += w.coherent * pdf_coherent(si.wi, wo, w.width_coherent);
         if (lobes.surface)
-            density += dr::select(w.surface > 0.f,
-                                  w.surface * pdf_surface(p, si.wi, wo, w.width_surface), 0.f);
+            density += w.surface * dr::select(w.surface > 0.f,
+                                              pdf_surface(p, si.wi, wo, w.width_surface), 0.f);
         return dr::select(active && mu_o > 0.f, density, 0.f);
     }
 
