@@ -146,15 +146,31 @@ template <typename Float, typename Spectrum> struct PowderTextures {
     /// Smallest value of a spatially uniform texture (over the 1 nm grid of the spectral
     /// tables in spectral variants, powder_registry.h), detached
     static ScalarFloat least_value(const Texture *texture) {
+        constexpr int table_size = powder_param::TableSize;
+        constexpr float table_min = powder_param::TableMin;
         ScalarFloat result = std::numeric_limits<ScalarFloat>::infinity();
-        for (ScalarFloat v : grid_values(texture))
-            result = std::min(result, v);
+        int steps = is_spectral_v<Spectrum> ? (table_size + 3) / 4 : 1;
+        for (int i = 0; i < steps; ++i) {
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
+            if constexpr (is_spectral_v<Spectrum>)
+                for (size_t j = 0; j < 4; ++j)
+                    si.wavelengths[j] = dr::minimum(table_min + (4 * i + j),
+                                                    table_min + (table_size - 1));
+            UnpolarizedSpectrum v = dr::detach(texture->eval(si));
+            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
+                if constexpr (dr::is_jit_v<Float>)
+                    result = std::min(result, (ScalarFloat) dr::slice(v[j], 0));
+                else
+                    result = std::min(result, (ScalarFloat) v[j]);
+            }
+        }
         return result;
     }
 
     /// The values of a spatially uniform texture at the wavelengths of the grain tables: the
     /// channels (RGB, mono), or the 1 nm grid of the spectral tables (powder_registry.h),
-    /// detached
+    /// detached; of a texture holding one value per lane (set through mi.traverse) the
+    /// largest
     static std::vector<ScalarFloat> grid_values(const Texture *texture) {
         constexpr int table_size = powder_param::TableSize;
         constexpr float table_min = powder_param::TableMin, table_max = table_min + (table_size - 1);
@@ -172,8 +188,10 @@ template <typename Float, typename Spectrum> struct PowderTextures {
             UnpolarizedSpectrum v = dr::detach(texture->eval(si));
             std::vector<ScalarFloat> channel(lanes);
             for (size_t c = 0; c < C; ++c) {
-                // (a texture that does not depend on the wavelength returns one value)
-                dr::store(channel.data(), v[c] + dr::zeros<Float>(lanes));
+                Float x = v[c];
+                if (dr::width(x) != lanes) // one value for all lanes, or one per lane
+                    x = dr::max(x) + dr::zeros<Float>(lanes);
+                dr::store(channel.data(), x);
                 for (uint32_t i = 0; i < lanes; ++i)
                     result[i * C + c] = channel[i];
             }
