@@ -16,7 +16,11 @@
 #include "powder_energy.h"
 #include "powder_grains.h"
 #include "powder_lobes.h"
+#include "powder_params.h"
+#include "powder_sampling.h"
+#include "powder_tables.h"
 #include "powder_terms.h"
+#include "powder_variant.h"
 #include "powder_volume.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -46,7 +50,7 @@ Dry powder (:monosp:`powder`)
 
  * - radius
    - |float| or |texture|
-   - Grain radius r in micrometres, without ``albedo``; the crystallite radius with
+   - Grain radius r in micrometres; an error with ``albedo``; the crystallite radius with
      agglomerates, where it only sets the size-parameter warning (Default: 0.017, range
      (0, inf); size parameter 2 pi r / lambda in [1e-3, 200] for spheres)
    - |exposed|, |differentiable| (not with agglomerates)
@@ -73,7 +77,7 @@ Dry powder (:monosp:`powder`)
  * - agglomerate_fill
    - |float| or |texture|
    - Volume fill f of crystallites in an agglomerate, ``grains`` = ``agglomerate`` only
-     (Default: 0.5, range (0, 1])
+     (Default: 0.5, range [1e-06, 1])
    - |exposed|, |differentiable|
 
  * - mixing
@@ -89,11 +93,11 @@ Dry powder (:monosp:`powder`)
  * - eta, k
    - |float| or |spectrum|
    - Optical constants n and k of the grain material, instead of ``material``; both or
-     neither (Default: from ``material``, range eta > 0, k >= 0)
+     neither (Default: from ``material``, range eta in [0.001, 1000], k in [0, 1000])
 
  * - amplitude_volume
    - |float| or |texture|
-   - Amplitude A_v of the volume terms (Default: 1.0, range [0, inf))
+   - Amplitude A_v of the volume terms (Default: 1.0, range [0, 1e+16])
    - |exposed|, |differentiable|
 
  * - g
@@ -103,13 +107,13 @@ Dry powder (:monosp:`powder`)
 
  * - extinction
    - |float| or |texture|
-   - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range (0, inf))
+   - Extinction coefficient kappa in 1/micrometre (Default: 1.0, range [1e-08, inf))
    - |exposed|, |differentiable|
 
  * - tau_o
    - |float| or |texture|
    - Extrapolation ratio of the diffusion boundary; exposed only when given
-     (Default: from Fresnel of Re(eta), range [0, inf))
+     (Default: from Fresnel of Re(eta), range [0, 1e+20])
    - |exposed|, |differentiable|
 
  * - thickness
@@ -120,13 +124,13 @@ Dry powder (:monosp:`powder`)
  * - amplitude_surface
    - |float| or |texture|
    - Surface amplitude A_s' in micrometre^2 (Harvey-Shack) or A_s (Gaussian)
-     (Default: 0.0, range [0, inf))
+     (Default: 0.0, range [0, 1e+06])
    - |exposed|, |differentiable|
 
  * - correlation_length
    - |float| or |texture|
    - Correlation length l_c of the surface in micrometres, Harvey-Shack only
-     (Default: 1.0, range (0, inf))
+     (Default: 1.0, range (0, 1e+08])
    - |exposed|, |differentiable|
 
  * - specular
@@ -144,7 +148,7 @@ Dry powder (:monosp:`powder`)
  * - sigma
    - |float| or |texture|
    - Half width of the Gaussian surface lobe in radians, Gaussian only (Default: 0.1,
-     range (0, pi/2])
+     range [1e-18, pi/2])
    - |exposed|, |differentiable|
 
  * - lobes
@@ -169,11 +173,11 @@ Dry powder (:monosp:`powder`)
  * - wavelength
    - |float|
    - Wavelength in nm at which mono variants evaluate the model (Default: 700,
-     range (0, inf))
+     range [1, 1e+06])
 
  * - rgb_wavelengths
    - |string|
-   - Wavelengths in nm of the R, G, B channels in RGB variants
+   - Wavelengths in nm of the R, G, B channels in RGB variants, each in [1, 1e+06]
      (Default: ``611.3, 549.1, 464.3``)
 
 The float parameters and their defaults and ranges are those of the table
@@ -212,50 +216,34 @@ the Harvey-Shack (or Gaussian) surface term. The material is one-sided.
         'amplitude_surface': 1e-4,
 */
 template <typename Float, typename Spectrum>
-class Powder final : public BSDF<Float, Spectrum>, public PowderGrains<Float, Spectrum> {
+class Powder final : public BSDF<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
     MI_IMPORT_TYPES(Texture)
+    using Params = PowderParams<Float, Spectrum>;
     using Grains = PowderGrains<Float, Spectrum>;
-    using typename Grains::Tables;
-    using typename Grains::FloatStorage;
-    using typename Grains::SpecularModel;
+    using Sampling = PowderSampling<Float, Spectrum>;
+    using Tables = PowderTables<Float, Spectrum>;
+    using FloatStorage = typename Tables::FloatStorage;
+    using SpecularModel = typename Params::SpecularModel;
+    using LobeWeights = typename Sampling::LobeWeights;
     using Lobes = powder_param::Lobes;
     using Volume = PowderVolume<Float, Spectrum>;
     using VolumeConstants = typename Volume::Constants;
     using Energy = PowderEnergy<Float, Spectrum>;
-    using Grains::TableSize;
-    // the properties (powder_params.h) and the grains (powder_grains.h)
-    using Grains::m_albedo, Grains::m_av, Grains::m_g, Grains::m_kappa, Grains::m_tau_o,
-        Grains::m_thickness, Grains::m_radius, Grains::m_radius2, Grains::m_fraction2,
-        Grains::m_agglomerate_radius, Grains::m_agglomerate_fill, Grains::m_textures,
-        Grains::m_grain_model, Grains::m_mixing, Grains::m_tau_given, Grains::m_two_populations,
-        Grains::m_specular, Grains::m_surface_fresnel, Grains::m_cosine_only,
-        Grains::m_conserving, Grains::m_lobes, Grains::m_wavelength, Grains::m_rgb_wavelengths,
-        Grains::m_optics, Grains::m_mie, Grains::m_tau_table, Grains::m_tau_table_constant,
-        Grains::m_packed, Grains::m_rho_channels, Grains::m_tau_channels, Grains::m_fresnel,
-        Grains::m_grain, Grains::m_grain_rho_mean, Grains::m_lc, Grains::m_sigma, Grains::m_as;
-    using Grains::at, Grains::textured, Grains::in_use, Grains::member, Grains::agglomerate,
-        Grains::grain_textured, Grains::table_param, Grains::uniform_spectrum_albedo,
-        Grains::wavelengths_um, Grains::inverse_wavelengths_um, Grains::mean_wavelength,
-        Grains::albedo, Grains::tau_o, Grains::lookup_grains, Grains::read_properties,
-        Grains::warn_outside_regime, Grains::read_grain_index, Grains::check_parameters,
-        Grains::update_grains;
 
-    Powder(const Properties &props) : Base(props) {
-        read_properties(props);
-        warn_outside_regime();
-        read_grain_index();
+    Powder(const Properties &props) : Base(props), m_params(props), m_grains(m_params) {
         // Components: volume (diffuse), coherent back-scattering and surface (glossy)
-        if (m_lobes.single || m_lobes.multiple) {
+        const Lobes &lobes = m_params.lobes;
+        if (lobes.single || lobes.multiple) {
             m_comp_volume = (uint32_t) m_components.size();
             m_components.push_back(BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide);
         }
-        if (m_lobes.coherent) {
+        if (lobes.coherent) {
             m_comp_coherent = (uint32_t) m_components.size();
             m_components.push_back(BSDFFlags::GlossyReflection | BSDFFlags::FrontSide);
         }
-        if (m_lobes.surface) {
+        if (lobes.surface) {
             m_comp_surface = (uint32_t) m_components.size();
             m_components.push_back(BSDFFlags::GlossyReflection | BSDFFlags::FrontSide);
         }
@@ -263,65 +251,62 @@ public:
         for (uint32_t c : m_components)
             m_flags |= c;
         parameters_changed();
+        warn_reflects_more_than_received();
     }
 
     void traverse(TraversalCallback *cb) override {
+        const Params &p = m_params;
         for (size_t i = 0; i < powder_param::Count; ++i) {
-            if (!in_use((powder_param::Id) i))
+            if (!p.in_use((powder_param::Id) i))
                 continue;
             // (the agglomerate property a grain texture table holds at one value is not)
-            bool held = agglomerate() && !m_albedo && grain_textured() &&
+            bool held = p.agglomerate() && !p.albedo && p.grain_textured() &&
                         (i == powder_param::AgglomerateRadius ||
                          i == powder_param::AgglomerateFill) &&
-                        i != (size_t) table_param();
+                        i != (size_t) p.table_param();
             uint32_t flags = (uint32_t) (powder_param::Table[i].fittable && !held
                                              ? ParamFlags::Differentiable
                                              : ParamFlags::NonDifferentiable);
-            if (m_textures[i]) // e.g. "g.data" for a bitmap, as Mitsuba's own textures
-                cb->put(powder_param::Table[i].name, m_textures[i], flags);
+            if (p.textures[i]) // e.g. "g.data" for a bitmap, as Mitsuba's own textures
+                cb->put(powder_param::Table[i].name, m_params.textures[i], flags);
             else
-                cb->put(powder_param::Table[i].name, this->*member((powder_param::Id) i), flags);
+                cb->put(powder_param::Table[i].name, m_params[(powder_param::Id) i], flags);
         }
-        if (m_albedo)
-            cb->put("albedo", m_albedo, ParamFlags::Differentiable);
+        if (p.albedo)
+            cb->put("albedo", m_params.albedo, ParamFlags::Differentiable);
     }
 
     void parameters_changed(const std::vector<std::string> &keys = {}) override {
-        check_parameters(); // edits through mi.traverse() are checked like properties
+        m_params.check(); // edits through mi.traverse() are checked like properties
 
         // An infinite layer needs no thickness factor (and 0 * inf would
         // poison the gradients of the extinction); a thickness texture is finite.
         // With one thickness per lane, the factor is evaluated when any is finite (it
         // is 1 in the infinite lanes)
-        m_finite_thickness = textured(powder_param::Thickness) ||
-                             std::isfinite(std::get<0>(powder_param::lane_range(m_thickness)));
+        m_finite_thickness =
+            m_params.textured(powder_param::Thickness) ||
+            std::isfinite(std::get<0>(powder_param::lane_range(m_params.thickness)));
 
         // Opaque first: the Mie tangents below must not bake the radius in as a literal
         // (that would compile a new kernel for every radius an optimiser tries)
         for (size_t i = 0; i < powder_param::Count; ++i)
-            dr::make_opaque(this->*member((powder_param::Id) i));
+            dr::make_opaque(m_params[(powder_param::Id) i]);
 
-        update_grains(keys);
+        m_grains.update(m_params, keys);
 
-        if (!is_spectral_v<Spectrum> && !textured(powder_param::Extinction)) {
+        if (!is_spectral_v<Spectrum> && !m_params.textured(powder_param::Extinction)) {
             m_k0_kappa = dr::TwoPi<ScalarFloat> /
-                         (wavelengths_um(dr::zeros<SurfaceInteraction3f>(1)) * m_kappa);
+                         (m_params.wavelengths_um(dr::zeros<SurfaceInteraction3f>(1)) *
+                          m_params.kappa);
             dr::make_opaque(m_k0_kappa);
         }
 
         update_volume();
 
         // Detached means, used only to weight the sampling lobes
-        m_rho_mean = m_albedo ? dr::detach(m_albedo->mean())
-                              : grain_textured() ? Float((ScalarFloat) m_grain_rho_mean)
-                              : Float(dr::mean(dr::detach(m_mie.rho)));
-        m_tau_mean = !m_tau_given ? Float(dr::mean(m_tau_table))
-                     : textured(powder_param::TauO)
-                         ? Float(dr::detach(m_textures[powder_param::TauO]->mean()))
-                         : dr::detach(m_tau_o);
-        dr::make_opaque(m_rho_mean, m_tau_mean);
+        m_sampling.update(m_params, m_grains);
 
-        if (m_conserving)
+        if (m_params.conserving)
             update_energy_norm();
     }
 
@@ -341,11 +326,11 @@ public:
         Float mu_i = Frame3f::cos_theta(si.wi);
         active &= mu_i > 0.f;
 
-        if (unlikely(!lobes.any() || dr::none_or<false>(active)))
+        if (unlikely(!lobes.some() || dr::none_or<false>(active)))
             return { bs, 0.f };
 
-        Float lam_mean = mean_wavelength(si);
-        LobeWeights w = lobe_weights(si, lam_mean, lobes);
+        Float lam_mean = m_params.mean_wavelength(si);
+        LobeWeights w = m_sampling.lobe_weights(m_params, m_grains, si, lam_mean, lobes);
 
         Mask pick_coherent = active && (sample1 < w.coherent),
              pick_surface  = active && !pick_coherent &&
@@ -355,9 +340,11 @@ public:
         // sample1 picks the lobe, sample2 draws the direction from it
         Vector3f wo = warp::square_to_cosine_hemisphere(sample2);
         if (lobes.coherent)
-            dr::masked(wo, pick_coherent) = sample_coherent(si.wi, w.width_coherent, sample2);
+            dr::masked(wo, pick_coherent) =
+                Sampling::sample_coherent(si.wi, w.width_coherent, sample2);
         if (lobes.surface)
-            dr::masked(wo, pick_surface) = sample_surface(si.wi, w.width_surface, sample2);
+            dr::masked(wo, pick_surface) =
+                Sampling::sample_surface(m_params, si.wi, w.width_surface, sample2);
 
         auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
 
@@ -385,10 +372,11 @@ public:
     Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                   const Vector3f &wo, Mask active) const override {
         MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
-        if (Lobes lobes = enabled_lobes(ctx); likely(lobes.any())) {
+        if (Lobes lobes = enabled_lobes(ctx); likely(lobes.some())) {
             active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
             UnpolarizedSpectrum value =
-                eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
+                eval_brdf(lobes, si, wo, m_params.wavelengths_um(si), active) *
+                Frame3f::cos_theta(wo);
             return depolarizer<Spectrum>(dr::select(active, value, 0.f));
         }
         return 0.f;
@@ -398,12 +386,12 @@ public:
               const Vector3f &wo, Mask active) const override {
         MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
         Lobes lobes = enabled_lobes(ctx);
-        if (unlikely(!lobes.any()))
+        if (unlikely(!lobes.some()))
             return 0.f;
         active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
-        Float lam_mean = mean_wavelength(si);
-        LobeWeights w = lobe_weights(si, lam_mean, lobes);
-        return pdf_impl(lobes, si, wo, w, active);
+        Float lam_mean = m_params.mean_wavelength(si);
+        LobeWeights w = m_sampling.lobe_weights(m_params, m_grains, si, lam_mean, lobes);
+        return Sampling::pdf(m_params, lobes, si, wo, w, active);
     }
 
     std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx,
@@ -412,90 +400,91 @@ public:
                                         Mask active) const override {
         MI_MASKED_FUNCTION(ProfilerPhase::BSDFEvaluate, active);
         Lobes lobes = enabled_lobes(ctx);
-        if (unlikely(!lobes.any()))
+        if (unlikely(!lobes.some()))
             return { 0.f, 0.f };
-        Float lam_mean = mean_wavelength(si);
-        LobeWeights w = lobe_weights(si, lam_mean, lobes);
+        Float lam_mean = m_params.mean_wavelength(si);
+        LobeWeights w = m_sampling.lobe_weights(m_params, m_grains, si, lam_mean, lobes);
         auto [value, pdf] = eval_pdf_impl(lobes, si, wo, w, active);
         return { depolarizer<Spectrum>(value), pdf };
     }
 
     Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si,
                                       Mask active) const override {
-        return depolarizer<Spectrum>(albedo(si, active));
+        return depolarizer<Spectrum>(m_grains.albedo(m_params, si, active));
     }
 
     /// Attributes: "albedo" (rho), "tau_o", and with the Mie path "q_ext",
     /// "q_sca" (first population) and "q_ext2", "q_sca2" (second)
     Mask has_attribute(const std::string &name, Mask /*active*/) const override {
-        bool tables = !m_albedo && !grain_textured();
+        bool tables = !m_params.albedo && !m_params.grain_textured();
         return name == "albedo" || name == "tau_o" ||
                (tables && (name == "q_ext" || name == "q_sca")) ||
-               (tables && m_two_populations && (name == "q_ext2" || name == "q_sca2"));
+               (tables && m_params.two_populations && (name == "q_ext2" || name == "q_sca2"));
     }
 
     UnpolarizedSpectrum eval_attribute(const std::string &name,
                                        const SurfaceInteraction3f &si,
                                        Mask active) const override {
         if (name == "albedo")
-            return albedo(si, active);
+            return m_grains.albedo(m_params, si, active);
         if (name == "tau_o")
-            return tau_o(si, active);
+            return m_grains.tau_o(m_params, si, active);
         if (!dr::any_nested(has_attribute(name, active)))
             Throw("powder: no attribute \"%s\"; available: albedo, tau_o%s", name,
-                  m_albedo || grain_textured()
-                      ? "" : (m_two_populations ? ", q_ext, q_sca, q_ext2, q_sca2"
-                                                : ", q_ext, q_sca"));
-        const FloatStorage &table = name == "q_ext" ? m_mie.qext
-                                  : name == "q_sca" ? m_mie.qsca
-                                  : name == "q_ext2" ? m_mie.qext2 : m_mie.qsca2;
+                  m_params.albedo || m_params.grain_textured()
+                      ? "" : (m_params.two_populations ? ", q_ext, q_sca, q_ext2, q_sca2"
+                                                       : ", q_ext, q_sca"));
+        const typename Tables::MieTables &mie = m_grains.mie;
+        const FloatStorage &table = name == "q_ext" ? mie.qext
+                                  : name == "q_sca" ? mie.qsca
+                                  : name == "q_ext2" ? mie.qext2 : mie.qsca2;
         return Tables::lookup(table, si, active);
     }
 
     std::string to_string() const override {
         std::ostringstream oss;
-        auto show = [&](powder_param::Id p) {
-            return m_textures[p] ? string::indent(m_textures[p])
-                                 : string::indent(this->*member(p));
+        const Params &p = m_params;
+        auto show = [&](powder_param::Id id) {
+            return p.textures[id] ? string::indent(p.textures[id]) : string::indent(p[id]);
         };
         using namespace powder_param;
         oss << "Powder[" << std::endl
             << "  amplitude_volume = " << show(AmplitudeVolume) << "," << std::endl
             << "  g = " << show(G) << "," << std::endl
             << "  extinction = " << show(Extinction) << " [1/um]," << std::endl
-            << "  albedo = " << (m_albedo ? string::indent(m_albedo)
+            << "  albedo = " << (p.albedo ? string::indent(p.albedo)
                                           : std::string("from the grains")) << "," << std::endl;
-        if (!m_albedo)
-            oss << "  grains = " << GrainValues[(size_t) m_grain_model] << "," << std::endl;
-        oss << "  radius = " << string::indent(m_radius) << " [um]," << std::endl;
-        if (!m_albedo && agglomerate())
-            oss << "  agglomerate_radius = " << string::indent(m_agglomerate_radius)
+        if (!p.albedo)
+            oss << "  grains = " << GrainValues[(size_t) p.grain_model] << "," << std::endl;
+        oss << "  radius = " << string::indent(p.radius) << " [um]," << std::endl;
+        if (!p.albedo && p.agglomerate())
+            oss << "  agglomerate_radius = " << string::indent(p.agglomerate_radius)
                 << " [um]," << std::endl
-                << "  agglomerate_fill = " << string::indent(m_agglomerate_fill) << ","
+                << "  agglomerate_fill = " << string::indent(p.agglomerate_fill) << ","
                 << std::endl
-                << "  mixing = " << MixingValues[(size_t) m_mixing] << "," << std::endl;
-        if (m_two_populations)
-            oss << "  radius2 = " << string::indent(m_radius2) << " [um]," << std::endl
-                << "  fraction2 = " << string::indent(m_fraction2) << "," << std::endl;
-        oss << "  optical constants = " << m_optics.source << "," << std::endl
-            << "  tau_o = " << (m_tau_given ? show(TauO) : std::string("from Fresnel (Re eta)"))
+                << "  mixing = " << MixingValues[(size_t) p.mixing] << "," << std::endl;
+        if (p.two_populations)
+            oss << "  radius2 = " << string::indent(p.radius2) << " [um]," << std::endl
+                << "  fraction2 = " << string::indent(p.fraction2) << "," << std::endl;
+        oss << "  optical constants = " << p.optics.source << "," << std::endl
+            << "  tau_o = " << (p.tau_given ? show(TauO) : std::string("from Fresnel (Re eta)"))
             << "," << std::endl
             << "  thickness = " << show(Thickness) << " [um]," << std::endl
-            << "  specular = " << SpecularValues[(size_t) m_specular] << "," << std::endl
-            << "  surface_fresnel = " << SurfaceFresnelValues[m_surface_fresnel] << ","
+            << "  specular = " << SpecularValues[(size_t) p.specular] << "," << std::endl
+            << "  surface_fresnel = " << SurfaceFresnelValues[p.surface_fresnel] << ","
             << std::endl
             << "  amplitude_surface = " << show(AmplitudeSurface) << "," << std::endl;
-        if (m_specular == SpecularModel::HarveyShack)
+        if (p.specular == SpecularModel::HarveyShack)
             oss << "  correlation_length = " << show(CorrelationLength) << " [um]," << std::endl;
         else
             oss << "  sigma = " << show(Sigma) << " [rad]," << std::endl;
-        oss << "  lobes = \"" << lobes_string(m_lobes) << "\"," << std::endl
-            << "  sampling = " << SamplingValues[m_cosine_only] << "," << std::endl
-            << "  energy = " << EnergyValues[m_conserving] << "," << std::endl
+        oss << "  lobes = \"" << lobes_string(p.lobes) << "\"," << std::endl
+            << "  sampling = " << SamplingValues[p.cosine_only] << "," << std::endl
+            << "  energy = " << EnergyValues[p.conserving] << "," << std::endl
             << "  volume constants = " << describe(m_volume_path) << "," << std::endl
-            << "  wavelength = " << m_wavelength << " [nm] (mono)," << std::endl
-            << "  rgb_wavelengths = " << m_rgb_wavelengths[0] << ", "
-            << m_rgb_wavelengths[1] << ", " << m_rgb_wavelengths[2] << " [nm] (rgb)" << std::endl
+            << "  wavelength = " << p.wavelength << " [nm] (mono)," << std::endl
+            << "  rgb_wavelengths = " << p.rgb_wavelengths[0] << ", "
+            << p.rgb_wavelengths[1] << ", " << p.rgb_wavelengths[2] << " [nm] (rgb)" << std::endl
             << "]";
         return oss.str();
     }
@@ -503,22 +492,73 @@ public:
     MI_DECLARE_CLASS(Powder)
 
 private:
-    /// Probabilities of the coherent and surface sampling lobes (the cosine
-    /// lobe gets the rest, at least 0.1) and their widths
-    struct LobeWeights {
-        Float coherent, surface;
-        Float width_coherent; ///< scale of the projected 2D Cauchy lobe
-        Float width_surface;  ///< std. dev. (projected plane or radians)
-    };
-
     Lobes enabled_lobes(const BSDFContext &ctx) const {
+        const Lobes &lobes = m_params.lobes;
         bool volume = ctx.is_enabled(BSDFFlags::DiffuseReflection, m_comp_volume);
         Lobes l;
-        l.single = m_lobes.single && volume;
-        l.multiple = m_lobes.multiple && volume;
-        l.coherent = m_lobes.coherent && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_coherent);
-        l.surface = m_lobes.surface && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_surface);
+        l.single = lobes.single && volume;
+        l.multiple = lobes.multiple && volume;
+        l.coherent = lobes.coherent && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_coherent);
+        l.surface = lobes.surface && ctx.is_enabled(BSDFFlags::GlossyReflection, m_comp_surface);
         return l;
+    }
+
+    /**
+     * energy = "paper": warn when the ladder terms reflect more than the light they receive
+     * at normal incidence (powder::ladder_reflectance_normal) at a wavelength of the grain
+     * tables, e.g. a white powder with the Fresnel tau_o of its material (docs/powder.md,
+     * "Energy"); textured parameters at their largest values (g: both ends), an albedo from
+     * spatially varying grains at its mean
+     */
+    void warn_reflects_more_than_received() const {
+        using namespace powder_param;
+        const Params &p = m_params;
+        if (p.conserving || !(p.lobes.single || p.lobes.multiple))
+            return;
+        auto largest = [&](Id id) {
+            return p.textured(id) ? p.texture_values(id).hi : Params::value_of(p[id]);
+        };
+        size_t n = m_grains.table_wavelengths.size();
+        std::vector<ScalarFloat> rho(n, (ScalarFloat) m_grains.grain_rho_mean),
+            tau = p.tau_given ? std::vector<ScalarFloat>(n, (ScalarFloat) largest(TauO))
+                              : Tables::download(m_grains.tau_table);
+        if (p.albedo && p.albedo->is_spatially_varying()) {
+            ScalarFloat max_value = 1.f;
+            try {
+                max_value = p.albedo->max();
+            } catch (const std::exception &) {
+                // this texture type cannot report its maximum: at most 1
+            }
+            rho.assign(n, max_value);
+        } else if (p.albedo)
+            rho = PowderTextures<Float, Spectrum>::grid_values(p.albedo.get());
+        else if (!p.grain_textured())
+            rho = Tables::download(m_grains.mie.rho);
+        std::vector<double> gs{ Params::value_of(p.g) };
+        if (p.textured(G))
+            gs = { p.texture_values(G).lo, p.texture_values(G).hi };
+        double d = p.textured(Thickness) ? Inf : Params::value_of(p.thickness),
+               worst = 0.0;
+        size_t at = 0;
+        for (size_t i = 0; i < n; ++i)
+            for (double g : gs) {
+                double r = powder::ladder_reflectance_normal(
+                    rho[i], g, tau[i], largest(AmplitudeVolume), largest(Extinction), d,
+                    p.lobes.single, p.lobes.multiple);
+                if (r > worst) {
+                    worst = r;
+                    at = i;
+                }
+            }
+        if (worst > 1.0)
+            Log(Warn,
+                "powder: this powder reflects %.4g times the light it receives at normal "
+                "incidence (energy = \"paper\": the ladder terms L1 + L2 at %g nm, albedo "
+                "%g, tau_o %g): more than it receives, which no powder does; the extrapolation "
+                "ratio tau_o of the diffusion approximation makes a bright powder brighter "
+                "than white (see docs/powder.md, \"Energy\"). Use energy = \"conserving\" "
+                "(at most 1), or a smaller albedo, tau_o or amplitude_volume",
+                worst, m_grains.table_wavelengths[at], (double) rho[at], (double) tau[at]);
     }
 
     // ---------------------------------------------------- volume constants
@@ -526,26 +566,27 @@ private:
     /// Spectral variants, an albedo that is one number and tau_o from the Fresnel table:
     /// whether the layer is optically thick at every wavelength (powder_volume.h, ThickLimit)
     bool optically_thick() const {
-        Float rho = m_albedo->eval(dr::zeros<SurfaceInteraction3f>(1), true)[0],
-              c0 = dr::sqrt(powder::c0_squared(rho, m_g));
+        Float rho = m_params.albedo->eval(dr::zeros<SurfaceInteraction3f>(1), true)[0],
+              c0 = dr::sqrt(powder::c0_squared(rho, m_params.g));
         double x0 = std::get<0>(powder_param::lane_range(
-            2.f * dr::detach(c0) * dr::min(dr::detach(m_tau_table))));
+            2.f * dr::detach(c0) * dr::min(dr::detach(m_grains.tau_table))));
         return x0 * (1.0 - powder::SaturationMargin) >= ThickLimit;
     }
 
     /// How eval obtains the volume constants (VolumePath), the constants or their table,
     /// and the form of C for the smallest x0 = 2 c0 tau_o they allow
     void update_volume() {
+        const Params &p = m_params;
         // The same for every interaction when the albedo and tau_o are (spectral: when the
         // albedo is one number for every wavelength and so is tau_o: given, or from a
         // constant index; or the layer is optically thick)
-        bool same = (!m_albedo || !m_albedo->is_spatially_varying()) &&
-                    !textured(powder_param::G) && !textured(powder_param::TauO) &&
-                    !grain_textured(),
+        bool same = (!p.albedo || !p.albedo->is_spatially_varying()) &&
+                    !p.textured(powder_param::G) && !p.textured(powder_param::TauO) &&
+                    !p.grain_textured(),
              thick_layer = false;
         if constexpr (is_spectral_v<Spectrum>) {
-            same &= uniform_spectrum_albedo();
-            if (same && !m_tau_given && !m_tau_table_constant)
+            same &= p.uniform_spectrum_albedo();
+            if (same && !p.tau_given && !m_grains.tau_table_constant)
                 same = thick_layer = optically_thick();
         }
         m_volume_path = VolumePath::PerLane;
@@ -555,10 +596,11 @@ private:
             SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(1);
             // optically thick: s(c0) = 1 / (2 c0), and tau_o, which neither L2 nor C then
             // reads, is set to its smallest value (x0 below)
-            m_volume = Volume::constants(albedo(si, true),
-                                         thick_layer ? UnpolarizedSpectrum(dr::min(m_tau_table))
-                                                     : tau_o(si, true),
-                                         m_g);
+            m_volume = Volume::constants(
+                m_grains.albedo(p, si, true),
+                thick_layer ? UnpolarizedSpectrum(dr::min(m_grains.tau_table))
+                            : m_grains.tau_o(p, si, true),
+                p.g);
             if (thick_layer)
                 m_volume.s_c0 = .5f / m_volume.c0;
             dr::make_opaque(m_volume.rho, m_volume.rho2_3, m_volume.c0_sq, m_volume.c0,
@@ -579,18 +621,22 @@ private:
     /// Spectral variants: the table of the volume constants on the 1 nm grid when they
     /// depend on the wavelength only (Volume::build_table); its lower bound of x0
     VolumePath volume_table(double &x0) {
-        if (grain_textured() || textured(powder_param::G) || textured(powder_param::TauO) ||
-            dr::width(m_g) != 1 || (m_tau_given && dr::width(m_tau_o) != 1) ||
-            (m_albedo && !uniform_spectrum_albedo()))
+        const Params &p = m_params;
+        if (p.grain_textured() || p.textured(powder_param::G) ||
+            p.textured(powder_param::TauO) || dr::width(p.g) != 1 ||
+            (p.tau_given && dr::width(p.tau_o) != 1) ||
+            (p.albedo && !p.uniform_spectrum_albedo()))
             return VolumePath::PerLane;
-        Float rho_value = m_albedo ? Float(m_albedo->eval(dr::zeros<SurfaceInteraction3f>(1),
+        Float rho_value = p.albedo ? Float(p.albedo->eval(dr::zeros<SurfaceInteraction3f>(1),
                                                            true)[0])
                                    : Float(0.f);
         if (dr::width(rho_value) != 1)
             return VolumePath::PerLane;
-        FloatStorage rho = m_albedo ? Volume::broadcast(rho_value, TableSize) : m_mie.rho,
-                     tau = m_tau_given ? Volume::broadcast(m_tau_o, TableSize) : m_tau_table;
-        return Volume::build_table(rho, m_albedo ? &rho_value : nullptr, tau, m_g, m_volume,
+        FloatStorage rho = p.albedo ? Volume::broadcast(rho_value, Tables::TableSize)
+                                    : m_grains.mie.rho,
+                     tau = p.tau_given ? Volume::broadcast(p.tau_o, Tables::TableSize)
+                                       : m_grains.tau_table;
+        return Volume::build_table(rho, p.albedo ? &rho_value : nullptr, tau, p.g, m_volume,
                                    m_volume_table, x0);
     }
 
@@ -600,29 +646,33 @@ private:
             return m_volume;
         if constexpr (is_spectral_v<Spectrum>)
             if (tabulated(m_volume_path))
-                return Volume::lookup(m_volume_table, m_volume_path, m_volume, m_g, si, active);
-        Float g = at(powder_param::G, si, active);
+                return Volume::lookup(m_volume_table, m_volume_path, m_volume, m_params.g, si,
+                                      active);
+        Float g = m_params.at(powder_param::G, si, active);
         if constexpr (is_spectral_v<Spectrum>) {
-            if (!m_albedo && !m_tau_given && !grain_textured()) { // one packet gather
-                auto [rho, tau] = lookup_grains(si, active);
+            if (!m_params.albedo && !m_params.tau_given &&
+                !m_params.grain_textured()) { // one packet gather
+                auto [rho, tau] = m_grains.lookup(si, active);
                 return Volume::constants(rho, tau, g);
             }
         }
-        return Volume::constants(albedo(si, active), tau_o(si, active), g);
+        return Volume::constants(m_grains.albedo(m_params, si, active),
+                                 m_grains.tau_o(m_params, si, active), g);
     }
 
     /// energy = "conserving": tabulate N (powder_energy.h) for the configured volume lobes
     void update_energy_norm() {
-        if (!m_lobes.volume())
+        if (!m_params.lobes.volume())
             return; // no volume term: eval never reads the table
-        Lobes lobes = m_lobes;
+        Lobes lobes = m_params.lobes;
         lobes.surface = false;
         auto terms = [&](const SurfaceInteraction3f &si, const Vector3f &wi, const Vector3f &wo) {
             VolumeConstants k = volume_constants(si, Mask(true));
             return volume_terms(lobes, si, wi, wo, k,
-                                k0_over_kappa(inverse_wavelengths_um(si), si, true), true);
+                                k0_over_kappa(m_params.inverse_wavelengths_um(si), si, true),
+                                true);
         };
-        m_norm_records = Energy::records(Energy::table(terms, m_av));
+        m_norm_records = Energy::records(Energy::table(terms, m_params.av));
     }
 
     // ---------------------------------------------------------- the model
@@ -632,8 +682,9 @@ private:
     /// is a texture (inv_lam: 1 / lambda per channel, shared with the surface term)
     UnpolarizedSpectrum k0_over_kappa(const UnpolarizedSpectrum &inv_lam,
                                       const SurfaceInteraction3f &si, Mask active) const {
-        if (is_spectral_v<Spectrum> || textured(powder_param::Extinction))
-            return inv_lam * (dr::TwoPi<ScalarFloat> / at(powder_param::Extinction, si, active));
+        if (is_spectral_v<Spectrum> || m_params.textured(powder_param::Extinction))
+            return inv_lam *
+                   (dr::TwoPi<ScalarFloat> / m_params.at(powder_param::Extinction, si, active));
         return m_k0_kappa;
     }
 
@@ -652,12 +703,12 @@ private:
               h = mu_i * mu_o / mu_sum; // = 1 / (2 v), docs/model.md Eq. 10b
         UnpolarizedSpectrum ladder(0.f), coherent(0.f);
         if (lobes.single) { // L1
-            Float factor = powder::single_scattering(at(powder_param::G, si, active), wi, wo,
-                                                     mu_sum);
+            Float factor = powder::single_scattering(m_params.at(powder_param::G, si, active),
+                                                     wi, wo, mu_sum);
             if (m_finite_thickness)
-                factor *= powder::thickness_factor(at(powder_param::Extinction, si, active),
-                                                   at(powder_param::Thickness, si, active),
-                                                   mu_i, mu_o);
+                factor *= powder::thickness_factor(
+                    m_params.at(powder_param::Extinction, si, active),
+                    m_params.at(powder_param::Thickness, si, active), mu_i, mu_o);
             ladder += k.rho * factor;
         }
         if (lobes.multiple) // L2
@@ -687,30 +738,31 @@ private:
         Float mu_i = Frame3f::cos_theta(wi), mu_sum = mu_i + Frame3f::cos_theta(wo);
 
         UnpolarizedSpectrum result(0.f),
-            inv_lam = inverse_wavelengths_um(si); // 1 / lambda (1/um), for k0 / kappa and S
+            inv_lam = m_params.inverse_wavelengths_um(si); // 1 / lambda (1/um), for k0 / kappa and S
 
         if (lobes.volume()) {
             VolumeConstants k = volume_constants(si, active);
             auto [ladder, coherent] = volume_terms(lobes, si, wi, wo, k,
                                                    k0_over_kappa(inv_lam, si, active), active);
             UnpolarizedSpectrum volume = ladder + coherent; // L1 + L2 + C
-            if (m_conserving) // energy = "conserving": times N(mu_i), per channel
+            if (m_params.conserving) // energy = "conserving": times N(mu_i), per channel
                 volume *= Energy::lookup(m_norm_records, mu_i, lam, active);
-            result = volume * (at(powder_param::AmplitudeVolume, si, active) *
+            result = volume * (m_params.at(powder_param::AmplitudeVolume, si, active) *
                                dr::InvFourPi<ScalarFloat>);
         }
 
         if (lobes.surface) {
             UnpolarizedSpectrum S;
-            Float as = at(powder_param::AmplitudeSurface, si, active);
-            if (m_specular == SpecularModel::HarveyShack)
+            Float as = m_params.at(powder_param::AmplitudeSurface, si, active);
+            if (m_params.specular == SpecularModel::HarveyShack)
                 S = powder::surface_harvey_shack(
-                    as, at(powder_param::CorrelationLength, si, active), wi, wo, mu_sum, inv_lam);
+                    as, m_params.at(powder_param::CorrelationLength, si, active), wi, wo,
+                    mu_sum, inv_lam);
             else
-                S = powder::surface_gaussian(as, at(powder_param::Sigma, si, active),
+                S = powder::surface_gaussian(as, m_params.at(powder_param::Sigma, si, active),
                                              mirror_angle(wi, wo));
-            if (m_surface_fresnel) // surface_fresnel: S F(c) / F(1), c = wi . h
-                S *= Tables::fresnel_factor(m_fresnel, si,
+            if (m_params.surface_fresnel) // surface_fresnel: S F(c) / F(1), c = wi . h
+                S *= Tables::fresnel_factor(m_grains.fresnel, si,
                                             powder::half_vector_cosine(dr::dot(wi, wo)), active);
             result += S;
         }
@@ -722,167 +774,22 @@ private:
         return powder::angle_between(wo, Vector3f(-wi.x(), -wi.y(), wi.z()));
     }
 
-    // ------------------------------------------------------------ sampling
-
-    LobeWeights lobe_weights(const SurfaceInteraction3f &si, Float lam_mean,
-                             const Lobes &lobes) const {
-        Float mu = dr::maximum(Frame3f::cos_theta(si.wi), 1e-4f);
-        auto value = [&](powder_param::Id p) { return dr::detach(at(p, si, true)); };
-        Float av = value(powder_param::AmplitudeVolume), rho = dr::clip(m_rho_mean, 0.f, 1.f),
-              g = value(powder_param::G), kappa = value(powder_param::Extinction),
-              tau = m_tau_mean, as = value(powder_param::AmplitudeSurface);
-
-        // Rough estimates of each term's directional albedo (integral of
-        // f cos over the hemisphere = integral of f over the projected disc)
-        Float c0 = dr::sqrt(powder::c0_squared(rho, g));
-        Float s0 = powder::s_func(c0, tau);
-        Float e_diffuse = 0.f, e_coherent = 0.f;
-        if (lobes.single)
-            e_diffuse += av * .25f * rho / (mu + .5f);
-        if (lobes.multiple)
-            e_diffuse += av * .25f * 3.f * dr::square(rho) * (s0 + h_of(mu, .5f)) /
-                         ((1.f + c0 * mu) * (1.f + .5f * c0));
-
-        // Width of the cone in the projected plane: C falls off where
-        // alpha ~ c0 + v, i.e. |wo_xy - wi_xy| ~ (kappa / k0) (c0 + 1 / mu_i).
-        // Broader cones are left to the cosine lobe.
-        Float width_c = dr::minimum(
-            .5f * kappa * lam_mean * dr::InvTwoPi<ScalarFloat> * (c0 + dr::rcp(mu)), .25f);
-        if (lobes.coherent) {
-            Float peak = 3.f * dr::square(rho) * (s0 + .5f * mu) / dr::square(1.f + c0 * mu);
-            e_coherent = av * .25f * peak * dr::square(width_c);
-        }
-        auto [e_surface, width_s, wide] = surface_estimate(si, lam_mean, mu, as, lobes);
-
-        Float total = e_diffuse + e_coherent + e_surface;
-        Mask positive = total > 0.f;
-        Float inv_total = dr::select(positive, dr::rcp(total), 0.f);
-        LobeWeights w;
-        // Probabilities in proportion to the estimated energies, no floors: a lobe with
-        // little energy gets few samples (floors make the weights bimodal, and a
-        // near-Lambertian powder under broad light noisier than with cosine sampling).
-        // The cosine lobe keeps at least 10 %, but for the surface term alone: S is
-        // exactly 0 beyond ~9 widths of its lobe (exp2_neg's cut), so cosine samples
-        // there would have weight 0, and nothing else is left to sample.
-        bool surface_only = lobes.surface && !lobes.single && !lobes.multiple && !lobes.coherent;
-        w.coherent = lobes.coherent && !m_cosine_only
-            ? Float(.9f * e_coherent * inv_total) : Float(0.f);
-        w.surface = !lobes.surface || m_cosine_only ? Float(0.f)
-                    : surface_only ? dr::select(as > 0.f, 1.f - wide, 0.f)
-                                   : dr::select(as > 0.f, .9f * e_surface * inv_total, 0.f) *
-                                         (1.f - wide);
-        w.width_coherent = width_c;
-        w.width_surface = width_s;
-        return w;
-    }
-
-    /// The surface lobe's estimated directional albedo, its width and the share of its
-    /// probability that goes to the cosine lobe
-    std::tuple<Float, Float, Float> surface_estimate(const SurfaceInteraction3f &si,
-                                                     const Float &lam_mean, const Float &mu,
-                                                     const Float &as, const Lobes &lobes) const {
-        Float e_surface = 0.f, width_s, wide = 0.f;
-        if (m_specular == SpecularModel::HarveyShack) {
-            width_s = lam_mean * dr::InvPi<ScalarFloat> * dr::InvSqrtTwo<ScalarFloat> /
-                      dr::detach(at(powder_param::CorrelationLength, si, true));
-            // Truncated to the disc, a lobe much wider than the disc tends to the
-            // uniform disc, which is the cosine lobe; the chord lobe (powder_lobes.h)
-            // tends to 1 / (4 sqrt(1 - u^2)) instead, whose peaks at the ends of the
-            // short chords a quadrature resolves poorly. So a share 1 - (0.4 / width)^2
-            // of the surface lobe's probability goes to the cosine lobe: none for widths
-            // up to 0.4 (l_c >= 0.3 um); wider lobes have S > 0 on the whole disc
-            // (exponent at most (1 + |c|)^2 / (2 width^2) < 13), so that these cosine
-            // samples never have weight 0
-            wide = dr::maximum(1.f - dr::square(.4f / width_s), 0.f);
-            // S integrated over the projected plane, times the share of a centred
-            // Gaussian of this width inside the unit disc (small l_c: wide lobes
-            // carry little energy onto the hemisphere)
-            if (lobes.surface)
-                e_surface = 16.f * dr::square(dr::Pi<ScalarFloat>) * as * dr::square(mu) /
-                            dr::square(lam_mean) *
-                            powder::one_minus_exp_neg(.5f / dr::square(width_s));
-        } else {
-            width_s = dr::detach(at(powder_param::Sigma, si, true));
-            if (lobes.surface)
-                e_surface = as * width_s * dr::SqrtTwoPi<ScalarFloat> * mu;
-        }
-        // surface_fresnel: the lobe's energy follows the factor F(mu_i) / F(1) of the
-        // mirror direction (channel mean), so that its share of the samples grows with it
-        // towards grazing light
-        if (lobes.surface && m_surface_fresnel) {
-            UnpolarizedSpectrum f = dr::detach(Tables::fresnel_factor(m_fresnel, si, mu, true));
-            Float mean = 0.f;
-            for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c)
-                mean += f[c];
-            e_surface *= mean * (1.f / (ScalarFloat) dr::size_v<UnpolarizedSpectrum>);
-        }
-        return { e_surface, width_s, wide };
-    }
-
-    static Float h_of(Float a, Float b) { return a * b / (a + b); }
-
-    /// Coherent lobe: a 2D Cauchy law of wo_xy - wi_xy with scale b, truncated
-    /// to the projected disc chord by chord (powder_lobes.h)
-    static Vector3f sample_coherent(const Vector3f &wi, Float b, const Point2f &u) {
-        return powder::sample_projected<powder::Radial::Cauchy>(
-            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, Float(0.f), u);
-    }
-
-    static Float pdf_coherent(const Vector3f &wi, const Vector3f &wo, Float b) {
-        return powder::pdf_projected<powder::Radial::Cauchy>(
-            wi.x(), wi.y(), dr::square(Frame3f::cos_theta(wi)), b, Float(0.f), wo);
-    }
-
-    /// Surface lobe. Harvey-Shack: a 2D Gaussian of wo_xy + wi_xy (the spatial
-    /// frequency times lambda, docs/model.md Eq. 21-22) truncated to the projected disc
-    /// chord by chord, moved inwards to follow the factor (mu_i + mu_o)^2; Gaussian: a
-    /// Gaussian in the cylindrical equal-area coordinates about the axis perpendicular
-    /// to the plane of incidence, truncated at the horizon (powder_lobes.h)
-    Vector3f sample_surface(const Vector3f &wi, Float width, const Point2f &u) const {
-        if (m_specular == SpecularModel::HarveyShack)
-            return powder::sample_projected<powder::Radial::Gaussian>(
-                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width,
-                surface_shift(wi, width), u);
-        return powder::sample_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, u);
-    }
-
-    Float pdf_surface(const Vector3f &wi, const Vector3f &wo, Float width) const {
-        if (m_specular == SpecularModel::HarveyShack)
-            return powder::pdf_projected<powder::Radial::Gaussian>(
-                -wi.x(), -wi.y(), dr::square(Frame3f::cos_theta(wi)), width,
-                surface_shift(wi, width), wo);
-        return powder::pdf_angular(Vector3f(-wi.x(), -wi.y(), wi.z()), width, wo);
-    }
-
-    /// Shift of the Harvey-Shack lobe towards the zenith (powder::projected_shift)
-    static Float surface_shift(const Vector3f &wi, Float width) {
-        return powder::projected_shift(dr::sqrt(dr::square(wi.x()) + dr::square(wi.y())),
-                                       Frame3f::cos_theta(wi), width);
-    }
-
-    Float pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
-                   const LobeWeights &w, Mask active) const {
-        Float mu_o = Frame3f::cos_theta(wo);
-        Float pdf = (1.f - w.coherent - w.surface) * dr::InvPi<ScalarFloat> * mu_o;
-        if (lobes.coherent)
-            pdf += w.coherent * pdf_coherent(si.wi, wo, w.width_coherent);
-        if (lobes.surface)
-            pdf += w.surface * pdf_surface(si.wi, wo, w.width_surface);
-        return dr::select(active && mu_o > 0.f, pdf, 0.f);
-    }
-
     std::pair<UnpolarizedSpectrum, Float>
     eval_pdf_impl(const Lobes &lobes, const SurfaceInteraction3f &si, const Vector3f &wo,
                   const LobeWeights &w, Mask active) const {
         active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
         UnpolarizedSpectrum value =
-            eval_brdf(lobes, si, wo, wavelengths_um(si), active) * Frame3f::cos_theta(wo);
-        Float pdf = pdf_impl(lobes, si, wo, w, active);
+            eval_brdf(lobes, si, wo, m_params.wavelengths_um(si), active) *
+            Frame3f::cos_theta(wo);
+        Float pdf = Sampling::pdf(m_params, lobes, si, wo, w, active);
         return { dr::select(active, value, 0.f), pdf };
     }
 
     // -------------------------------------------------------------- state
 
+    Params m_params;     ///< the properties (powder_params.h)
+    Grains m_grains;     ///< the grain tables (powder_grains.h)
+    Sampling m_sampling; ///< what the sampling weights read (powder_sampling.h)
     uint32_t m_comp_volume = 0, m_comp_coherent = 0, m_comp_surface = 0;
     // what eval reads (parameters_changed)
     bool m_finite_thickness = false;
@@ -892,83 +799,11 @@ private:
     VolumeConstants m_volume;      ///< the constants eval does not read from a table
     FloatStorage m_volume_table;   ///< spectral: records of the volume constants
     FloatStorage m_norm_records;   ///< energy = "conserving": N (powder_energy.h)
-    Float m_rho_mean, m_tau_mean;  ///< detached means for the sampling weights
 
-    MI_TRAVERSE_CB(Base, m_albedo, m_textures, m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as,
-                   m_lc, m_sigma, m_radius, m_radius2, m_fraction2, m_agglomerate_radius,
-                   m_agglomerate_fill, m_rho_mean, m_tau_mean, m_rho_channels, m_tau_channels,
-                   m_k0_kappa, m_packed, m_volume, m_volume_table, m_mie, m_tau_table,
-                   m_norm_records,
-                   m_fresnel.records, m_grain.records)
+    MI_TRAVERSE_CB(Base, m_params, m_grains, m_sampling, m_k0_kappa, m_volume, m_volume_table,
+                   m_norm_records)
 };
 
+POWDER_EXPORT_VARIANT(Powder)
+
 NAMESPACE_END(mitsuba)
-
-// ---------------------------------------------------------------------------
-//  Registration. CMake compiles this file once per Mitsuba variant with
-//  POWDER_VARIANT=<name> and its types (POWDER_BACKEND_<scalar|llvm|cuda>,
-//  POWDER_CHANNELS = 3 (RGB), 1 (mono) or 0 (spectral), POWDER_POLARIZED), so
-//  that the variants build in parallel and incrementally, and once with
-//  POWDER_REGISTRY for the plugin entry point, which registers every variant of
-//  the generated list powder_variants.h (CMakeLists.txt: POWDER_VARIANTS).
-// ---------------------------------------------------------------------------
-
-#define POWDER_CAT_(a, b) a##b
-#define POWDER_CAT(a, b) POWDER_CAT_(a, b)
-#define POWDER_STR_(a) #a
-#define POWDER_STR(a) POWDER_STR_(a)
-
-#if defined(POWDER_VARIANT)
-NAMESPACE_BEGIN(mitsuba)
-namespace powder_variant {
-#if defined(POWDER_BACKEND_scalar)
-    using F = float;
-#elif defined(POWDER_BACKEND_llvm)
-    using F = dr::DiffArray<JitBackend::LLVM, float>;
-#elif defined(POWDER_BACKEND_cuda)
-    using F = dr::DiffArray<JitBackend::CUDA, float>;
-#else
-#error "POWDER_BACKEND_<scalar|llvm|cuda> is not defined"
-#endif
-#if POWDER_CHANNELS == 0
-    using U = Spectrum<F, 4>;
-#else
-    using U = Color<F, POWDER_CHANNELS>;
-#endif
-#if POWDER_POLARIZED
-    using S = MuellerMatrix<U>;
-#else
-    using S = U;
-#endif
-    constexpr bool same(const char *a, const char *b) {
-        return *a == *b && (*a == '\0' || same(a + 1, b + 1));
-    }
-    static_assert(detail::variant<F, S>::name != nullptr &&
-                      same(detail::variant<F, S>::name, POWDER_STR(POWDER_VARIANT)),
-                  "the types derived from POWDER_VARIANT do not match the installed "
-                  "Mitsuba's variant of that name");
-}
-
-void POWDER_CAT(powder_register_, POWDER_VARIANT)(std::string_view name,
-                                                   PluginRegisterFn fn) {
-    using P = Powder<powder_variant::F, powder_variant::S>;
-    fn(name, P::Variant, P::Type,
-       [](void *, const Properties &p) -> ref<Object> { return new P(p); });
-}
-NAMESPACE_END(mitsuba)
-
-#elif defined(POWDER_REGISTRY)
-#include "powder_variants.h"
-NAMESPACE_BEGIN(mitsuba)
-#define POWDER_DECLARE(v) void powder_register_##v(std::string_view, PluginRegisterFn);
-POWDER_FOR_EACH_VARIANT(POWDER_DECLARE)
-NAMESPACE_END(mitsuba)
-
-extern "C" MI_EXPORT void init_plugin(std::string_view name, mitsuba::PluginRegisterFn fn) {
-    using namespace mitsuba;
-#define POWDER_REGISTER(v) powder_register_##v(name, fn);
-    POWDER_FOR_EACH_VARIANT(POWDER_REGISTER)
-}
-#else
-#error "compile powder.cpp with POWDER_VARIANT=<variant> or POWDER_REGISTRY"
-#endif

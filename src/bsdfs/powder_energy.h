@@ -13,6 +13,63 @@
  */
 
 #include "powder_tables.h"
+#include "powder_terms.h"
+
+namespace powder {
+
+/// Gauss-Legendre nodes x and weights w of n points on (0, 1), computed in double
+template <typename T> void gauss_legendre01(uint32_t n, T *x, T *w) {
+    for (uint32_t i = 0; i < n; ++i) {
+        double z = std::cos(M_PI * (i + 0.75) / (n + 0.5)), pp = 1.0;
+        for (int it = 0; it < 100; ++it) {
+            double p1 = 1.0, p2 = 0.0;
+            for (uint32_t j = 1; j <= n; ++j) {
+                double p3 = p2;
+                p2 = p1;
+                p1 = ((2.0 * j - 1.0) * z * p2 - (j - 1.0) * p3) / j;
+            }
+            pp = n * (z * p1 - p2) / (z * z - 1.0);
+            double z1 = z;
+            z = z1 - p1 / pp;
+            if (std::abs(z - z1) < 1e-15)
+                break;
+        }
+        x[i] = (T) (0.5 * (1.0 - z));
+        w[i] = (T) (1.0 / ((1.0 - z * z) * pp * pp));
+    }
+}
+
+/**
+ * What the ladder terms reflect of light at normal incidence with energy = "paper": the
+ * directional-hemispherical reflectance A_v / (4 pi) int (L1 + L2) mu_o dw_o =
+ * (A_v / 2) int_0^1 (L1 + L2)(mu_o) mu_o dmu_o (at wi = +z both depend on mu_o alone), by a
+ * 32-point Gauss-Legendre rule in double precision with the terms of powder_terms.h; L1 with
+ * the thickness factor of kappa and d (d = inf: an infinite layer). `single`, `multiple`:
+ * whether L1, L2 are evaluated. With the extrapolation ratio of the diffusion approximation
+ * a white powder reflects about 0.75 tau_o + 0.44 (docs/powder.md, "Energy").
+ */
+inline double ladder_reflectance_normal(double rho, double g, double tau, double av,
+                                        double kappa, double d, bool single, bool multiple) {
+    constexpr uint32_t N = 32;
+    double x[N], w[N];
+    gauss_legendre01(N, x, w);
+    using Vector = dr::Array<double, 3>;
+    double c0 = std::sqrt(c0_squared(rho, g)), s_c0 = s_func(c0, tau), sum = 0.0;
+    Vector wi(0.0, 0.0, 1.0);
+    for (uint32_t i = 0; i < N; ++i) {
+        double mu = x[i], f = 0.0;
+        if (single)
+            f += rho * single_scattering(g, wi, Vector(std::sqrt(1.0 - mu * mu), 0.0, mu),
+                                         1.0 + mu) *
+                 thickness_factor(kappa, d, 1.0, mu);
+        if (multiple)
+            f += multiple_scattering(3.0 * rho * rho, s_c0, c0, mu / (1.0 + mu), 1.0, mu);
+        sum += w[i] * f * mu;
+    }
+    return 0.5 * av * sum;
+}
+
+} // namespace powder
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -36,28 +93,6 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
     /// record per channel)
     static constexpr size_t NormPacket =
         is_spectral_v<Spectrum> ? 4 : (dr::size_v<UnpolarizedSpectrum> == 3 ? 8 : 2);
-
-    /// Gauss-Legendre nodes and weights on (0, 1)
-    static void gauss_legendre01(uint32_t n, ScalarFloat *x, ScalarFloat *w) {
-        for (uint32_t i = 0; i < n; ++i) {
-            double z = std::cos(M_PI * (i + 0.75) / (n + 0.5)), pp = 1.0;
-            for (int it = 0; it < 100; ++it) {
-                double p1 = 1.0, p2 = 0.0;
-                for (uint32_t j = 1; j <= n; ++j) {
-                    double p3 = p2;
-                    p2 = p1;
-                    p1 = ((2.0 * j - 1.0) * z * p2 - (j - 1.0) * p3) / j;
-                }
-                pp = n * (z * p1 - p2) / (z * z - 1.0);
-                double z1 = z;
-                z = z1 - p1 / pp;
-                if (std::abs(z - z1) < 1e-15)
-                    break;
-            }
-            x[i] = (ScalarFloat) (0.5 * (1.0 - z));
-            w[i] = (ScalarFloat) (1.0 / ((1.0 - z * z) * pp * pp));
-        }
-    }
 
     /**
      * Node q of the quadrature of the projected disc at the incidence node `node`, in
@@ -126,15 +161,15 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
      */
     template <typename Terms> static FloatStorage table(const Terms &terms, const Float &av) {
         std::vector<ScalarFloat> x(NormRadial), w(NormRadial);
-        gauss_legendre01(NormInner, x.data(), w.data());
-        gauss_legendre01(NormOuter, x.data() + NormInner, w.data() + NormInner);
-        FloatStorage gx = Tables::load(x), gw = Tables::load(w);
-        std::vector<FloatStorage> norm(C); // per channel, per block
+        powder::gauss_legendre01(NormInner, x.data(), w.data());
+        powder::gauss_legendre01(NormOuter, x.data() + NormInner, w.data() + NormInner);
+        FloatStorage gx = Tables::upload(x), gw = Tables::upload(w);
+        std::vector<FloatStorage> norms(C); // per channel, per block
         if constexpr (dr::is_jit_v<Float>) {
             auto [si, wo, weight] = lane(dr::arange<UInt32>(Blocks * NormQ), gx, gw);
             auto [ladder, coherent] = terms(si, si.wi, wo);
             for (uint32_t c = 0; c < C; ++c)
-                norm[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
+                norms[c] = norm_from(dr::block_sum(ladder[c] * weight, NormQ),
                                     dr::block_sum(coherent[c] * weight, NormQ), av);
         } else {
             std::vector<double> rl(Blocks * C, 0.0), rc(Blocks * C, 0.0);
@@ -150,12 +185,12 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
                 std::vector<ScalarFloat> v(Blocks);
                 for (uint32_t b = 0; b < Blocks; ++b)
                     v[b] = norm_from((ScalarFloat) rl[b * C + c], (ScalarFloat) rc[b * C + c], av);
-                norm[c] = Tables::load(v);
+                norms[c] = Tables::upload(v);
             }
         }
         // table entry wl * NormMu + nd, wl = group * C + c: block group * NormMu + nd of c
         std::vector<const FloatStorage *> source;
-        for (const FloatStorage &n : norm)
+        for (const FloatStorage &n : norms)
             source.push_back(&n);
         std::vector<uint32_t> which(NW * NormMu), index(NW * NormMu);
         for (uint32_t wl = 0; wl < NW; ++wl)
@@ -167,7 +202,7 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
     }
 
     /// The table as records of NormPacket entries for one packet gather per lookup
-    static FloatStorage records(const FloatStorage &norm) {
+    static FloatStorage records(const FloatStorage &table) {
         constexpr uint32_t P = NormPacket;
         const uint32_t n_rec = is_spectral_v<Spectrum> ? NW * NormMu : NormMu;
         std::vector<uint32_t> src(P * n_rec);
@@ -182,7 +217,7 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
                     src[P * r + e] = c * NormMu + kk;
                 }
             }
-        return Tables::gather_entries({ &norm }, std::vector<uint32_t>(src.size(), 0u), src);
+        return Tables::gather_entries({ &table }, std::vector<uint32_t>(src.size(), 0u), src);
     }
 
     /// N at incidence mu_i and the channel wavelengths lam (um) from the records

@@ -29,7 +29,7 @@
 
 namespace powder {
 
-// ---------------------------------------------------------------- erf(x)
+// ------------------------------------------------------------ erf_fit(x)
 
 /**
  * erf(x) for the sampling densities: Dr.Jit's single-precision fit (dr::erf, within
@@ -39,7 +39,7 @@ namespace powder {
  * more work than the sampling densities need in single precision. Above 4
  * (1 - erf < 1.6e-8, which rounds to 1) the argument is clamped at 4.
  */
-template <typename T> T erf(const T &x) {
+template <typename T> T erf_fit(const T &x) {
     if constexpr (!dr::is_jit_v<T>) {
         return dr::erf(x);
     } else {
@@ -70,7 +70,7 @@ enum class Law { Gaussian, Cauchy, Student2 };
 /// G(x) = 2 F(x) - 1 of the law of scale s
 template <Law law, typename Float> Float law_g(const Float &x, const Float &s) {
     if constexpr (law == Law::Gaussian)
-        return powder::erf(x * (dr::InvSqrtTwo<Float> / s));
+        return powder::erf_fit(x * (dr::InvSqrtTwo<Float> / s));
     else if constexpr (law == Law::Cauchy)
         return dr::atan2(x, s) * (2.f * dr::InvPi<Float>);
     else
@@ -212,16 +212,16 @@ Float pdf_projected(const Float &cx, const Float &cy, const Float &one_minus_c2,
     Float dx = wo.x() - cx, dy = wo.y() - cy;
     Float du = dx * chx + dy * chy, v = dy * chx - dx * chy;
     Float h = dr::sqrt(dr::square(wo.z()) + dr::square(v)); // 1 - u^2 = mu_o^2 + v^2
-    Float norm = dr::maximum(law_g<law_u<law>>(hi, s) - law_g<law_u<law>>(lo, s), 1e-30f);
+    Float mass = dr::maximum(law_g<law_u<law>>(hi, s) - law_g<law_u<law>>(lo, s), 1e-30f);
     if constexpr (law == Radial::Gaussian) {
         // the two Gaussian densities of truncated_density with one exponential
         Float inv_s2 = dr::rcp(dr::square(s)),
               dens = (2.f * dr::InvPi<Float>) * inv_s2 *
                      exp_neg(.5f * (dr::square(du + shift) + dr::square(v)) * inv_s2);
-        return dens / (norm * dr::maximum(2.f * law_g<Law::Gaussian>(h, s), 1e-30f)) * wo.z();
+        return dens / (mass * dr::maximum(2.f * law_g<Law::Gaussian>(h, s), 1e-30f)) * wo.z();
     } else {
         Float sv = chord_scale<law>(du, s);
-        return law_density2<Law::Cauchy>(du, s) / norm *
+        return law_density2<Law::Cauchy>(du, s) / mass *
                truncated_density_symmetric<Law::Student2>(v, h, sv) * wo.z();
     }
 }

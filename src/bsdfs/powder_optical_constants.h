@@ -56,10 +56,13 @@ inline void append_row(OpticalTable &t, double wl, double n, double k, const std
         fail("powder: ", where, ": wavelength ", wl, " um does not increase (previous row: ",
              t.wavelength_um.back(), " um); duplicate or out-of-order rows must be removed "
              "from the file");
-    if (!(n > 0.0))
-        fail("powder: ", where, ": n = ", n, " is out of range; valid range is (0, inf)");
-    if (!(k >= 0.0))
-        fail("powder: ", where, ": k = ", k, " is out of range; valid range is [0, inf)");
+    // the ranges of the properties eta and k (docs/model.md, "Valid ranges")
+    if (!powder_param::EtaNumber.range.contains(n))
+        fail("powder: ", where, ": n = ", n, " is out of range; valid range is ",
+             powder_param::EtaNumber.range.str());
+    if (!powder_param::KNumber.range.contains(k))
+        fail("powder: ", where, ": k = ", k, " is out of range; valid range is ",
+             powder_param::KNumber.range.str());
     t.wavelength_um.push_back(wl);
     t.n.push_back(n);
     t.k.push_back(k);

@@ -1,9 +1,10 @@
 #pragma once
 
 /*
- * Reading and checking the properties of the `powder` plugin (the tables of
- * powder_registry.h): ranges, choices, the grain model's rules, the optical constants,
- * the lobes and wavelengths, and the values texture-valued parameters hold.
+ * The properties of the `powder` plugin: reading and checking them (the tables of
+ * powder_registry.h: ranges, choices, the grain model's rules, the optical constants, the
+ * lobes and wavelengths, the values texture-valued parameters hold), and PowderParams, the
+ * part of the BSDF's state that holds them (a member of the BSDF, powder.cpp).
  */
 
 #include <mitsuba/core/fresolver.h>
@@ -18,7 +19,6 @@
 
 #include "powder_optics.h"
 #include "powder_registry.h"
-#include "powder_tables.h"
 #include "powder_textures.h"
 
 namespace powder_param {
@@ -67,7 +67,9 @@ template <typename T> void check_lanes(Id p, const T &v) {
 /// Which terms are evaluated: the `lobes` property (and, per call, the BSDF context)
 struct Lobes {
     bool single = false, multiple = false, coherent = false, surface = false;
-    bool any() const { return single || multiple || coherent || surface; }
+    /// Whether some term is evaluated
+    bool some() const { return single || multiple || coherent || surface; }
+    /// Whether some volume term is evaluated
     bool volume() const { return single || multiple || coherent; }
 };
 
@@ -137,9 +139,9 @@ inline std::array<double, 3> parse_rgb_wavelengths(const std::string &spec) {
         if (end == items[i].c_str() || *end != '\0')
             Throw("powder: property \"rgb_wavelengths\" = \"%s\": \"%s\" is not a "
                   "number", spec, items[i]);
-        if (!(v > 0.0) || !std::isfinite(v))
+        if (!WavelengthNumber.range.contains(v))
             Throw("powder: property \"rgb_wavelengths\" = \"%s\": wavelength %g is "
-                  "out of range; valid range is (0, inf) nm", spec, v);
+                  "out of range; valid range is %s nm", spec, v, WavelengthNumber.range.str());
         out[i] = v;
     }
     return out;
@@ -167,19 +169,20 @@ inline std::pair<powder::GrainModel, powder::Mixing> read_grain_model(const Prop
     return { (powder::GrainModel) model, (powder::Mixing) mixing };
 }
 
-/// (wavelengths in nm, values) of a float or spectrum property; a uniform
-/// value gets a wavelength list spanning everything
+/// (wavelengths in nm, values) of a float (or integer) or spectrum property; a uniform
+/// value gets a wavelength list spanning every accepted wavelength
 inline std::pair<std::vector<double>, std::vector<double>>
 read_spectrum(const Properties &props, const char *name) {
     auto type = props.type(name);
-    if (type == Properties::Type::Float) {
+    if (type == Properties::Type::Float || type == Properties::Type::Integer) {
         double v = props.get<double>(name);
-        return { { 1.0, 1e6 }, { v, v } };
+        return { { WavelengthNumber.range.lo, WavelengthNumber.range.hi }, { v, v } };
     }
     if (type == Properties::Type::Spectrum) {
         Properties::Spectrum spec = props.get<Properties::Spectrum>(name);
         if (spec.is_uniform())
-            return { { 1.0, 1e6 }, { spec.values[0], spec.values[0] } };
+            return { { WavelengthNumber.range.lo, WavelengthNumber.range.hi },
+                     { spec.values[0], spec.values[0] } };
         for (size_t i = 1; i < spec.wavelengths.size(); ++i)
             if (!(spec.wavelengths[i] > spec.wavelengths[i - 1]))
                 Throw("powder: property \"%s\": wavelengths must increase (%g nm "
@@ -238,30 +241,42 @@ inline powder::OpticalTable load_optics(const Properties &props) {
 NAMESPACE_BEGIN(mitsuba)
 
 /**
- * The properties of a powder (read_properties) and what follows from them alone: which
- * parameters are in use, their values at an interaction (a float or a texture), and the
- * evaluation wavelengths. The base of the BSDF (powder.cpp), through PowderGrains.
+ * The traversal of a part of the BSDF's state by Dr.Jit (frozen functions): the JIT
+ * variables of the members listed, as MI_TRAVERSE_CB gives the BSDF, which lists the part
+ * among its own members. For the parts that are plain structs (no virtual methods).
  */
-template <typename Float, typename Spectrum> class PowderParams {
-public:
+#define POWDER_TRAVERSE_MEMBERS(...)                                                      \
+    void traverse_1_cb_ro(void *payload, drjit::detail::traverse_callback_ro fn) const {  \
+        DRJIT_MARK_USED(payload);                                                         \
+        DRJIT_MARK_USED(fn);                                                              \
+        DRJIT_MAP(DR_TRAVERSE_MEMBER_RO, __VA_ARGS__)                                     \
+    }                                                                                     \
+    void traverse_1_cb_rw(void *payload, drjit::detail::traverse_callback_rw fn) {        \
+        DRJIT_MARK_USED(payload);                                                         \
+        DRJIT_MARK_USED(fn);                                                              \
+        DRJIT_MAP(DR_TRAVERSE_MEMBER_RW, __VA_ARGS__)                                     \
+    }
+
+/**
+ * The properties of a powder (read and checked by the constructor) and what follows from
+ * them alone: which parameters are in use, their values at an interaction (a float or a
+ * texture), and the evaluation wavelengths. A member of the BSDF (powder.cpp).
+ */
+template <typename Float, typename Spectrum> struct PowderParams {
     MI_IMPORT_TYPES(Texture)
     enum class SpecularModel : uint32_t { HarveyShack = 0, Gaussian = 1 };
-    using Tables = PowderTables<Float, Spectrum>;
     using Textures = PowderTextures<Float, Spectrum>;
-    using FloatStorage = typename Tables::FloatStorage;
     using Lobes = powder_param::Lobes;
-    static constexpr int TableSize = Tables::TableSize;
-    static constexpr float TableMin = Tables::TableMin, TableStep = Tables::TableStep;
 
-protected:
     // ---------------------------------------------------------- properties
 
-    /// Read and check the properties (powder_params.h, the tables of powder_registry.h)
-    void read_properties(const Properties &props) {
+    /// Read and check the properties (the tables of powder_registry.h); warns when the
+    /// extinction is outside the regime of the coherent term (warn_outside_regime)
+    explicit PowderParams(const Properties &props) {
         using namespace powder_param;
-        m_tau_given = props.has_property("tau_o");
-        m_two_populations = props.has_property("radius2") || props.has_property("fraction2");
-        std::tie(m_grain_model, m_mixing) = read_grain_model(props);
+        tau_given = props.has_property("tau_o");
+        two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        std::tie(grain_model, mixing) = read_grain_model(props);
         // The float parameters; a fittable one may be a texture (evaluated at si.uv)
         for (size_t i = 0; i < Count; ++i) {
             const Spec &spec = Table[i];
@@ -271,65 +286,66 @@ protected:
                 if (spec.fittable && (type == Properties::Type::Object ||
                                       type == Properties::Type::Reference ||
                                       type == Properties::Type::ResolvedReference)) {
-                    m_textures[i] = props.get_texture<Texture>(spec.name);
-                    Textures::check((Id) i, m_textures[i].get());
+                    textures[i] = props.get_texture<Texture>(spec.name);
+                    Textures::check((Id) i, textures[i].get());
                 } else {
                     value = props.get<double>(spec.name);
                     check_range(spec.name, value, spec.range);
                 }
             }
-            this->*member((Id) i) = Float((ScalarFloat) value);
+            (*this)[(Id) i] = Float((ScalarFloat) value);
         }
-        m_specular = (SpecularModel) read_choice<2>(props, "specular", SpecularValues);
-        m_surface_fresnel = read_choice<2>(props, "surface_fresnel", SurfaceFresnelValues) == 1;
-        if (m_surface_fresnel && m_tau_given && !props.has_property("eta") &&
+        specular = (SpecularModel) read_choice<2>(props, "specular", SpecularValues);
+        surface_fresnel = read_choice<2>(props, "surface_fresnel", SurfaceFresnelValues) == 1;
+        if (surface_fresnel && tau_given && !props.has_property("eta") &&
             !props.has_property("material"))
             Throw("powder: property \"surface_fresnel\" = \"fresnel\" needs the grain "
                   "material's index, which \"tau_o\" given alone does not fix: give \"eta\" "
                   "and \"k\" (or \"material\") too, or surface_fresnel = \"none\"");
-        m_lobes = parse_lobes(props.get<std::string>("lobes", LobeList.def));
-        m_cosine_only = read_choice<2>(props, "sampling", SamplingValues) == 1;
-        m_conserving = read_choice<2>(props, "energy", EnergyValues) == 1;
-        if (m_conserving)
+        lobes = parse_lobes(props.get<std::string>("lobes", LobeList.def));
+        cosine_only = read_choice<2>(props, "sampling", SamplingValues) == 1;
+        conserving = read_choice<2>(props, "energy", EnergyValues) == 1;
+        if (conserving)
             for (size_t i = 0; i < Count; ++i)
                 if (is_normalisation_param((Id) i) && textured((Id) i))
                     Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
                           "uniform \"%s\" (the normalisation is tabulated per wavelength and "
                           "incidence), but it is a texture; use energy = \"paper\" or a "
                           "float", Table[i].name);
-        double wavelength = props.get<double>("wavelength", WavelengthNumber.def);
-        check_range(WavelengthNumber.name, wavelength, WavelengthNumber.range);
-        m_wavelength = (ScalarFloat) wavelength;
+        double wavelength_nm = props.get<double>("wavelength", WavelengthNumber.def);
+        check_range(WavelengthNumber.name, wavelength_nm, WavelengthNumber.range);
+        wavelength = (ScalarFloat) wavelength_nm;
         std::array<double, 3> rgb = read_rgb_wavelengths(props);
         for (size_t i = 0; i < 3; ++i)
-            m_rgb_wavelengths[i] = (ScalarFloat) rgb[i];
-        m_optics = load_optics(props);
+            rgb_wavelengths[i] = (ScalarFloat) rgb[i];
+        optics = load_optics(props);
         if (props.has_property("albedo")) {
-            m_albedo = props.get_texture<Texture>("albedo");
-            Textures::check_albedo(m_albedo.get(), TableSize, TableMin);
-            if (m_conserving && m_albedo->is_spatially_varying())
+            albedo = props.get_texture<Texture>("albedo");
+            Textures::check_albedo(albedo.get());
+            if (conserving && albedo->is_spatially_varying())
                 Throw("powder: property \"energy\" = \"conserving\" needs a spatially "
                       "uniform albedo (the normalisation is tabulated per wavelength and "
                       "incidence), but property \"albedo\" is a spatially varying texture; "
                       "use energy = \"paper\" or a uniform albedo");
         }
+        warn_outside_regime();
     }
 
     /// Check every parameter in use (a value per lane: each lane), as after an edit
-    void check_parameters() const {
+    void check() const {
         for (size_t i = 0; i < powder_param::Count; ++i) {
             powder_param::Id p = (powder_param::Id) i;
             if (!in_use(p))
                 continue;
-            if (m_textures[i]) {
-                Textures::check(p, m_textures[i].get());
+            if (textures[i]) {
+                Textures::check(p, textures[i].get());
                 continue;
             }
-            const Float &v = this->*member(p);
+            const Float &v = (*this)[p];
             powder_param::check_lanes(p, v);
             // the grain tables are built from one value (one per lane would be ignored),
             // and so is the normalisation of energy = "conserving"
-            if (dr::width(v) > 1 && m_conserving && powder_param::is_normalisation_param(p))
+            if (dr::width(v) > 1 && conserving && powder_param::is_normalisation_param(p))
                 Throw("powder: property \"%s\" holds %zu values (one per lane); with energy "
                       "= \"conserving\" it takes one value (the normalisation is tabulated "
                       "for one); use energy = \"paper\" for one value per lane",
@@ -351,15 +367,16 @@ protected:
     void warn_outside_regime() const {
         double lam_nm;
         if constexpr (is_spectral_v<Spectrum>)
-            lam_nm = TableMin + (TableSize - 1) * TableStep;
+            lam_nm = powder_param::TableMin +
+                     (powder_param::TableSize - 1) * powder_param::TableStep;
         else if constexpr (is_rgb_v<Spectrum>)
-            lam_nm = std::max({ (double) m_rgb_wavelengths[0], (double) m_rgb_wavelengths[1],
-                                (double) m_rgb_wavelengths[2] });
+            lam_nm = std::max({ (double) rgb_wavelengths[0], (double) rgb_wavelengths[1],
+                                (double) rgb_wavelengths[2] });
         else
-            lam_nm = m_wavelength;
-        double kappa = textured(powder_param::Extinction)
-                           ? texture_values(powder_param::Extinction).hi : value_of(m_kappa),
-               ratio = kappa * lam_nm * 1e-3 / (2.0 * M_PI);
+            lam_nm = wavelength;
+        double k = textured(powder_param::Extinction)
+                       ? texture_values(powder_param::Extinction).hi : value_of(kappa),
+               ratio = k * lam_nm * 1e-3 / (2.0 * M_PI);
         if (ratio > RegimeLimit)
             Log(Warn,
                 "powder: property \"extinction\" = %g 1/um (its largest value) gives "
@@ -368,7 +385,7 @@ protected:
                 "back-scattering theory (kappa/k0 << 1), where the coherent term is not "
                 "physical (with energy=\"paper\" a white powder reflects more than it "
                 "receives; see docs/powder.md, \"Energy\")",
-                kappa, ratio, lam_nm);
+                k, ratio, lam_nm);
     }
 
     /// The value of a parameter that holds one value (lane 0 of a JIT array)
@@ -377,46 +394,50 @@ protected:
     /// The member holding a float parameter of the table powder_param::Table
     static Float PowderParams::*member(powder_param::Id p) {
         static constexpr Float PowderParams::*members[powder_param::Count] = {
-            &PowderParams::m_av, &PowderParams::m_g, &PowderParams::m_kappa, &PowderParams::m_tau_o,
-            &PowderParams::m_thickness, &PowderParams::m_as, &PowderParams::m_lc, &PowderParams::m_sigma,
-            &PowderParams::m_radius, &PowderParams::m_radius2, &PowderParams::m_fraction2,
-            &PowderParams::m_agglomerate_radius, &PowderParams::m_agglomerate_fill
+            &PowderParams::av, &PowderParams::g, &PowderParams::kappa, &PowderParams::tau_o,
+            &PowderParams::thickness, &PowderParams::as, &PowderParams::lc, &PowderParams::sigma,
+            &PowderParams::radius, &PowderParams::radius2, &PowderParams::fraction2,
+            &PowderParams::agglomerate_radius, &PowderParams::agglomerate_fill
         };
         return members[p];
     }
 
+    /// A float parameter of the table powder_param::Table (its float value)
+    Float &operator[](powder_param::Id p) { return this->*member(p); }
+    const Float &operator[](powder_param::Id p) const { return this->*member(p); }
+
     /// Whether a parameter enters the model as configured (range-checked, traversed)
     bool in_use(powder_param::Id p) const {
         switch (p) {
-            case powder_param::TauO: return m_tau_given;
-            case powder_param::Radius: return !m_albedo && !agglomerate();
+            case powder_param::TauO: return tau_given;
+            case powder_param::Radius: return !albedo && !agglomerate();
             case powder_param::Radius2:
-            case powder_param::Fraction2: return !m_albedo && m_two_populations;
+            case powder_param::Fraction2: return !albedo && two_populations;
             case powder_param::AgglomerateRadius:
-            case powder_param::AgglomerateFill: return !m_albedo && agglomerate();
+            case powder_param::AgglomerateFill: return !albedo && agglomerate();
             case powder_param::CorrelationLength:
-                return m_specular == SpecularModel::HarveyShack;
-            case powder_param::Sigma: return m_specular == SpecularModel::Gaussian;
+                return specular == SpecularModel::HarveyShack;
+            case powder_param::Sigma: return specular == SpecularModel::Gaussian;
             default: return true;
         }
     }
 
-    bool agglomerate() const { return m_grain_model == powder::GrainModel::Agglomerate; }
+    bool agglomerate() const { return grain_model == powder::GrainModel::Agglomerate; }
 
     /// Whether a float parameter is given as a texture
-    bool textured(powder_param::Id p) const { return (bool) m_textures[p]; }
+    bool textured(powder_param::Id p) const { return (bool) textures[p]; }
 
     /// A float parameter at an interaction: its texture at si.uv, or its value
     Float at(powder_param::Id p, const SurfaceInteraction3f &si, Mask active) const {
-        if (m_textures[p])
-            return m_textures[p]->eval_1(si, active);
+        if (textures[p])
+            return textures[p]->eval_1(si, active);
         DRJIT_MARK_USED(si);
         DRJIT_MARK_USED(active);
-        return this->*member(p);
+        return (*this)[p];
     }
 
     TextureValues<Float, Spectrum> texture_values(powder_param::Id p) const {
-        return TextureValues<Float, Spectrum>::of(m_textures[p].get());
+        return TextureValues<Float, Spectrum>::of(textures[p].get());
     }
 
     // ------------------------------------------------------- wavelengths
@@ -426,12 +447,12 @@ protected:
         if constexpr (is_spectral_v<Spectrum>) {
             return si.wavelengths * 1e-3f;
         } else if constexpr (is_rgb_v<Spectrum>) {
-            return UnpolarizedSpectrum(m_rgb_wavelengths[0] * 1e-3f,
-                                       m_rgb_wavelengths[1] * 1e-3f,
-                                       m_rgb_wavelengths[2] * 1e-3f);
+            return UnpolarizedSpectrum(rgb_wavelengths[0] * 1e-3f,
+                                       rgb_wavelengths[1] * 1e-3f,
+                                       rgb_wavelengths[2] * 1e-3f);
         } else {
             DRJIT_MARK_USED(si);
-            return UnpolarizedSpectrum(m_wavelength * 1e-3f);
+            return UnpolarizedSpectrum(wavelength * 1e-3f);
         }
     }
 
@@ -450,22 +471,24 @@ protected:
             return dr::mean(si.wavelengths) * 1e-3f;
         } else if constexpr (is_rgb_v<Spectrum>) {
             DRJIT_MARK_USED(si);
-            return (m_rgb_wavelengths[0] + m_rgb_wavelengths[1] + m_rgb_wavelengths[2]) *
+            return (rgb_wavelengths[0] + rgb_wavelengths[1] + rgb_wavelengths[2]) *
                    (1e-3f / 3.f);
         } else {
             DRJIT_MARK_USED(si);
-            return m_wavelength * 1e-3f;
+            return wavelength * 1e-3f;
         }
     }
 
+    // ------------------------------------------------------------- grains
+
     /// Whether a grain property that sets the albedo is a texture
     bool grain_textured() const {
-        return !m_albedo &&
+        return !albedo &&
                (agglomerate() ? textured(powder_param::AgglomerateRadius) ||
                                     textured(powder_param::AgglomerateFill)
                               : textured(powder_param::Radius) ||
-                                    (m_two_populations && (textured(powder_param::Radius2) ||
-                                                           textured(powder_param::Fraction2))));
+                                    (two_populations && (textured(powder_param::Radius2) ||
+                                                         textured(powder_param::Fraction2))));
     }
 
     /// The grain parameter the texture table runs over (its texture sets the lanes): the
@@ -473,7 +496,7 @@ protected:
     powder_param::Id table_param() const {
         if (agglomerate() && textured(powder_param::AgglomerateFill))
             return powder_param::AgglomerateFill;
-        return powder_param::GrainRules[(size_t) m_grain_model].size;
+        return powder_param::GrainRules[(size_t) grain_model].size;
     }
 
     /// Smallest and largest value of a grain parameter (a radius in um, or the fill)
@@ -486,32 +509,37 @@ protected:
                       powder_param::Table[p].name);
             return { v.lo, v.hi };
         }
-        double r = value_of(this->*member(p));
+        double r = value_of((*this)[p]);
         return { r, r };
     }
 
     /// An `albedo` that is one number for every wavelength and surface point (a
     /// `uniform` spectrum; in spectral variants the others depend on the wavelength)
     bool uniform_spectrum_albedo() const {
-        return m_albedo && !m_albedo->is_spatially_varying() &&
-               m_albedo->class_name() == "UniformSpectrum";
+        return albedo && !albedo->is_spatially_varying() &&
+               albedo->class_name() == "UniformSpectrum";
     }
 
-    // properties (read_properties)
-    ref<Texture> m_albedo;                          ///< null: albedo from the grains
-    Float m_av, m_g, m_kappa, m_tau_o, m_thickness, m_as, m_lc, m_sigma;
-    Float m_radius, m_radius2, m_fraction2, m_agglomerate_radius, m_agglomerate_fill;
-    ref<Texture> m_textures[powder_param::Count]; ///< texture-valued float parameters
-    powder::GrainModel m_grain_model = powder::GrainModel::Sphere;
-    powder::Mixing m_mixing = powder::Mixing::Bruggeman;
-    bool m_tau_given = false, m_two_populations = false;
-    SpecularModel m_specular;
-    bool m_surface_fresnel = false, m_cosine_only = false;
-    bool m_conserving = false;      ///< energy = "conserving"
-    Lobes m_lobes;
-    ScalarFloat m_wavelength;
-    ScalarFloat m_rgb_wavelengths[3];
-    powder::OpticalTable m_optics; ///< the grain material's index
+    // ------------------------------------------------------------- values
+
+    ref<Texture> albedo;                          ///< null: albedo from the grains
+    /// the float parameters (powder_param::Table; member)
+    Float av, g, kappa, tau_o, thickness, as, lc, sigma;
+    Float radius, radius2, fraction2, agglomerate_radius, agglomerate_fill;
+    ref<Texture> textures[powder_param::Count]; ///< texture-valued float parameters
+    powder::GrainModel grain_model = powder::GrainModel::Sphere;
+    powder::Mixing mixing = powder::Mixing::Bruggeman;
+    bool tau_given = false, two_populations = false;
+    SpecularModel specular;
+    bool surface_fresnel = false, cosine_only = false;
+    bool conserving = false;      ///< energy = "conserving"
+    Lobes lobes;
+    ScalarFloat wavelength;       ///< nm (mono)
+    ScalarFloat rgb_wavelengths[3]; ///< nm (RGB)
+    powder::OpticalTable optics; ///< the grain material's index
+
+    POWDER_TRAVERSE_MEMBERS(albedo, textures, av, g, kappa, tau_o, thickness, as, lc, sigma,
+                            radius, radius2, fraction2, agglomerate_radius, agglomerate_fill)
 };
 
 NAMESPACE_END(mitsuba)

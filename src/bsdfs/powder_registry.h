@@ -32,6 +32,11 @@ namespace powder_param {
 
 constexpr double Inf = std::numeric_limits<double>::infinity();
 
+/// The wavelength grid of spectral variants' tables: TableSize nodes TableStep nm apart from
+/// TableMin nm (360..830 nm, the range of Mitsuba's spectral variants)
+inline constexpr int TableSize = 471;
+inline constexpr float TableMin = 360.f, TableStep = 1.f;
+
 /// Valid values of a parameter: an interval with open or closed ends
 struct Range {
     double lo, hi;
@@ -69,6 +74,11 @@ inline std::string range_error(const char *name, double value, const Range &r) {
  * mi.traverse (parameters_changed), the traversal key and whether it is
  * differentiable; tests/plugin/test_params_doc.py checks that the doc comment above the
  * class and docs/powder.md list the same names, defaults and ranges.
+ *
+ * The ranges are those over which eval, pdf and sample are finite for every combination of
+ * accepted values (docs/model.md, "Valid ranges"; tests/plugin/test_finite.py): each
+ * finite end is the limit measured with the other properties at their worst ends, rounded
+ * inwards to a power of ten, where that limit is not a physical one.
  */
 struct Spec {
     const char *name;
@@ -88,21 +98,21 @@ inline constexpr Spec Table[Count] = {
     // name                 unit    default  default as documented
     //     range {lo, hi, lo closed, hi closed}, fittable
     { "amplitude_volume",   "-",    1.0,     "1.0",
-          { 0.0, Inf, true, false }, true },
+          { 0.0, 1e16, true, true }, true },
     { "g",                  "-",    0.0,     "0.0",
           { -1.0, 1.0, false, false }, true },
     { "extinction",         "1/um", 1.0,     "1.0",
-          { 0.0, Inf, false, false }, true },
+          { 1e-8, Inf, true, false }, true },
     { "tau_o",              "-",    2.0 / 3, "from Fresnel of Re(eta)",
-          { 0.0, Inf, true, false }, true },
+          { 0.0, 1e20, true, true }, true },
     { "thickness",          "um",   Inf,     "infinite",
           { 0.0, Inf, true, true }, true },
     { "amplitude_surface",  "um^2", 0.0,     "0.0",
-          { 0.0, Inf, true, false }, true },
+          { 0.0, 1e6, true, true }, true },
     { "correlation_length", "um",   1.0,     "1.0",
-          { 0.0, Inf, false, false }, true },
+          { 0.0, 1e8, false, true }, true },
     { "sigma",              "rad",  0.1,     "0.1",
-          { 0.0, 0.5 * M_PI, false, true }, true },
+          { 1e-18, 0.5 * M_PI, true, true }, true },
     { "radius",             "um",   0.017,   "0.017",
           { 0.0, Inf, false, false }, true },
     { "radius2",            "um",   1.0,     "none (one population)",
@@ -112,7 +122,7 @@ inline constexpr Spec Table[Count] = {
     { "agglomerate_radius", "um",   1.0,     "none (required with agglomerates)",
           { 0.0, Inf, false, false }, true },
     { "agglomerate_fill",   "-",    0.5,     "0.5",
-          { 0.0, 1.0, false, true }, true },
+          { 1e-6, 1.0, true, true }, true },
 };
 
 /// Whether a float parameter has a default: the others are computed (tau_o) or absent
@@ -142,7 +152,10 @@ constexpr bool is_normalisation_param(Id p) {
            is_grain_param(p);
 }
 
-/// The other numeric properties (not traversed): one value, or a spectrum (eta, k)
+/// The other numeric properties (not traversed): one value, or a spectrum (eta, k). Their
+/// ranges hold every wavelength (`wavelength`, each of `rgb_wavelengths`) and every value of
+/// an optical-constant table (eta and k, or n and k of a material file; docs/model.md,
+/// "Valid ranges")
 struct Number {
     const char *name;
     double def; ///< NaN: no default
@@ -150,9 +163,9 @@ struct Number {
 };
 
 inline constexpr Number Numbers[] = {
-    { "wavelength", 700.0, { 0.0, Inf, false, false } },
-    { "eta", std::numeric_limits<double>::quiet_NaN(), { 0.0, Inf, false, false } },
-    { "k", std::numeric_limits<double>::quiet_NaN(), { 0.0, Inf, true, false } },
+    { "wavelength", 700.0, { 1.0, 1e6, true, true } },
+    { "eta", std::numeric_limits<double>::quiet_NaN(), { 1e-3, 1e3, true, true } },
+    { "k", std::numeric_limits<double>::quiet_NaN(), { 0.0, 1e3, true, true } },
 };
 inline constexpr const Number &WavelengthNumber = Numbers[0], &EtaNumber = Numbers[1],
                               &KNumber = Numbers[2];
@@ -248,9 +261,10 @@ inline constexpr std::array<const char *, 6> GrainProperties = {
     "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
 };
 
-/// The properties a given `albedo` replaces (an error together with it)
-inline constexpr std::array<const char *, 4> AlbedoExcludes = {
-    "grains", "agglomerate_radius", "agglomerate_fill", "mixing"
+/// The properties a given `albedo` replaces (an error together with it): the grain model
+/// and every property of the grains
+inline constexpr std::array<const char *, 7> AlbedoExcludes = {
+    "grains", "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
 };
 
 /// A grain model (a value of `grains`, in the order of ChoiceTable[Grains]): the parameter

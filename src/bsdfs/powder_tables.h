@@ -22,6 +22,7 @@
 
 #include "powder_fresnel.h"
 #include "powder_optics.h"
+#include "powder_registry.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -46,8 +47,9 @@ template <typename Float, typename Spectrum> struct PowderTables {
     MI_IMPORT_TYPES()
     using FloatStorage = DynamicBuffer<Float>;
     using UInt32Storage = DynamicBuffer<UInt32>;
-    static constexpr int TableSize = 471; ///< spectral grid: 360..830 nm
-    static constexpr float TableMin = 360.f, TableStep = 1.f;
+    /// the spectral grid (powder_registry.h)
+    static constexpr int TableSize = powder_param::TableSize;
+    static constexpr float TableMin = powder_param::TableMin, TableStep = powder_param::TableStep;
 
     /// Entry e of the result is source[which[e]][index[e]]; differentiable (JIT: gathers)
     static FloatStorage gather_entries(const std::vector<const FloatStorage *> &source,
@@ -83,8 +85,19 @@ template <typename Float, typename Spectrum> struct PowderTables {
         return gather_entries(quantities, quantity, node);
     }
 
-    static FloatStorage load(const std::vector<ScalarFloat> &v) {
+    static FloatStorage upload(const std::vector<ScalarFloat> &v) {
         return dr::load<FloatStorage>(v.data(), v.size());
+    }
+
+    /// The entries of a table on the host, detached
+    static std::vector<ScalarFloat> download(const FloatStorage &t) {
+        std::vector<ScalarFloat> v(dr::width(t));
+        if constexpr (dr::is_jit_v<Float>)
+            dr::store(v.data(), dr::detach(t));
+        else
+            for (size_t i = 0; i < v.size(); ++i)
+                v[i] = t[i];
+        return v;
     }
 
     /// Spectral variants: each channel's position in the 1 nm grid (entry floor(t),
@@ -164,7 +177,7 @@ template <typename Float, typename Spectrum> struct PowderTables {
             std::all_of(eta.begin(), eta.end(), [&](ScalarFloat v) { return v == eta[0]; }) &&
             std::all_of(k.begin(), k.end(), [&](ScalarFloat v) { return v == k[0]; });
         if (is_spectral_v<Spectrum> && !out.constant) {
-            FloatStorage e = load(eta), kk = load(k);
+            FloatStorage e = upload(eta), kk = upload(k);
             out.records = interval_records({ &e, &kk }, (uint32_t) eta.size());
             return out;
         }
@@ -216,7 +229,7 @@ template <typename Float, typename Spectrum> struct PowderTables {
             std::vector<ScalarFloat> v(n);
             for (size_t i = 0; i < n; ++i)
                 v[i] = (ScalarFloat) (rows[i].*c);
-            return load(v);
+            return upload(v);
         };
         MieTables t{ column(&powder::AlbedoRow::rho), column(&powder::AlbedoRow::q_ext1),
                      column(&powder::AlbedoRow::q_sca1), column(&powder::AlbedoRow::q_ext2),
@@ -242,7 +255,7 @@ template <typename Float, typename Spectrum> struct PowderTables {
     static GrainTexture grain_texture(powder::EfficiencyTable &&table) {
         GrainTexture g;
         std::vector<ScalarFloat> rec(table.records.begin(), table.records.end());
-        g.records = load(rec);
+        g.records = upload(rec);
         dr::make_opaque(g.records);
         g.u0 = (ScalarFloat) table.u0;
         g.du = (ScalarFloat) table.du;

@@ -13,6 +13,7 @@
 
 #include <exception>
 #include <limits>
+#include <vector>
 
 #include "powder_registry.h"
 
@@ -119,7 +120,7 @@ template <typename Float, typename Spectrum> struct PowderTextures {
 
     /// A single-scattering albedo must lie in [0, 1] (the minimum is checked where the
     /// texture is uniform and can be evaluated in this variant)
-    static void check_albedo(const Texture *albedo, int table_size, float table_min) {
+    static void check_albedo(const Texture *albedo) {
         ScalarFloat max_value;
         try {
             max_value = albedo->max();
@@ -133,7 +134,7 @@ template <typename Float, typename Spectrum> struct PowderTextures {
             return;
         ScalarFloat min_value;
         try {
-            min_value = minimum(albedo, table_size, table_min);
+            min_value = least_value(albedo);
         } catch (const std::exception &) {
             return; // this texture type cannot be evaluated in this variant
         }
@@ -142,9 +143,11 @@ template <typename Float, typename Spectrum> struct PowderTextures {
                   "single-scattering albedo must lie in [0, 1]", (double) min_value);
     }
 
-    /// Smallest value of a spatially uniform texture (over the 1 nm grid of table_size
-    /// wavelengths from table_min in spectral variants), detached
-    static ScalarFloat minimum(const Texture *texture, int table_size, float table_min) {
+    /// Smallest value of a spatially uniform texture (over the 1 nm grid of the spectral
+    /// tables in spectral variants, powder_registry.h), detached
+    static ScalarFloat least_value(const Texture *texture) {
+        constexpr int table_size = powder_param::TableSize;
+        constexpr float table_min = powder_param::TableMin;
         ScalarFloat result = std::numeric_limits<ScalarFloat>::infinity();
         int steps = is_spectral_v<Spectrum> ? (table_size + 3) / 4 : 1;
         for (int i = 0; i < steps; ++i) {
@@ -161,6 +164,50 @@ template <typename Float, typename Spectrum> struct PowderTextures {
                     result = std::min(result, (ScalarFloat) v[j]);
             }
         }
+        return result;
+    }
+
+    /// The values of a spatially uniform texture at the wavelengths of the grain tables: the
+    /// channels (RGB, mono), or the 1 nm grid of the spectral tables (powder_registry.h),
+    /// detached; of a texture holding one value per lane (set through mi.traverse) the
+    /// largest
+    static std::vector<ScalarFloat> grid_values(const Texture *texture) {
+        constexpr int table_size = powder_param::TableSize;
+        constexpr float table_min = powder_param::TableMin, table_max = table_min + (table_size - 1);
+        constexpr size_t C = dr::size_v<UnpolarizedSpectrum>;
+        // lane i holds the wavelengths 4 i + c of the grid (spectral) in its channels c
+        uint32_t lanes = is_spectral_v<Spectrum> ? (uint32_t) (table_size + 3) / 4 : 1;
+        std::vector<ScalarFloat> result(lanes * C);
+        if constexpr (dr::is_jit_v<Float>) { // every lane in one evaluation
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(lanes);
+            if constexpr (is_spectral_v<Spectrum>) {
+                UInt32 i = dr::arange<UInt32>(lanes);
+                for (uint32_t c = 0; c < C; ++c)
+                    si.wavelengths[c] = dr::minimum(table_min + Float(4u * i + c), table_max);
+            }
+            UnpolarizedSpectrum v = dr::detach(texture->eval(si));
+            std::vector<ScalarFloat> channel(lanes);
+            for (size_t c = 0; c < C; ++c) {
+                Float x = v[c];
+                if (dr::width(x) != lanes) // one value for all lanes, or one per lane
+                    x = dr::max(x) + dr::zeros<Float>(lanes);
+                dr::store(channel.data(), x);
+                for (uint32_t i = 0; i < lanes; ++i)
+                    result[i * C + c] = channel[i];
+            }
+        } else {
+            for (uint32_t i = 0; i < lanes; ++i) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                if constexpr (is_spectral_v<Spectrum>)
+                    for (uint32_t c = 0; c < C; ++c)
+                        si.wavelengths[c] = std::min(table_min + (float) (4 * i + c), table_max);
+                UnpolarizedSpectrum v = texture->eval(si);
+                for (size_t c = 0; c < C; ++c)
+                    result[i * C + c] = v[c];
+            }
+        }
+        if (is_spectral_v<Spectrum>)
+            result.resize(table_size); // the last lane repeats the last node
         return result;
     }
 };

@@ -1,5 +1,6 @@
-"""Differentiable parameters: gradients against central finite differences, and opaque
-parameters (an optimisation step does not recompile kernels)."""
+"""Differentiable parameters: gradients against central finite differences, opaque
+parameters (an optimisation step does not recompile kernels), and the BSDF's state traversed
+by Dr.Jit (a frozen function sees parameter edits)."""
 
 from __future__ import annotations
 
@@ -130,6 +131,39 @@ def test_parameter_update_reuses_kernels():
                                         ("amplitude_surface", 2e-3),
                                         ("correlation_length", 0.7), ("thickness", 0.5),
                                         ("amplitude_volume", 0.8)])
+
+
+FROZEN_CASES = {
+    "albedo": lambda: {"albedo": 0.8, "amplitude_surface": 1e-3},
+    "grains": lambda: {"radius": 0.1},
+    "conserving": lambda: {"albedo": 0.7, "energy": "conserving"},
+    "g texture": lambda: {"albedo": 0.7, "g": {
+        "type": "bitmap", "raw": True, "data": mi.TensorXf(np.full((2, 2, 1), 0.2, np.float32))}},
+}
+
+
+@pytest.mark.parametrize("case", sorted(FROZEN_CASES))
+def test_frozen_function_sees_parameter_edits(case):
+    """dr.freeze finds the BSDF's JIT variables through its traversal (the members of its
+    parts: parameters, grain tables, sampling means): a function frozen once evaluates the
+    edited parameters exactly as a direct call does, without recording again."""
+    use_variant(VARIANT)
+    bsdf = mi.load_dict({"type": "powder", **FROZEN_CASES[case]()})
+    si, wo, _ = geometry(64)
+
+    @dr.freeze
+    def frozen_eval(b, si_, wo_):
+        return b.eval(mi.BSDFContext(), si_, wo_)
+
+    params = mi.traverse(bsdf)
+    for extinction in (1.0, 2.5, 0.5):
+        params["extinction"] = extinction
+        if "radius" in params:
+            params["radius"] = 0.1 * extinction
+        params.update()
+        direct = np.array(bsdf.eval(mi.BSDFContext(), si, wo))
+        np.testing.assert_array_equal(np.array(frozen_eval(bsdf, si, wo)), direct)
+    assert frozen_eval.n_recordings == 1
 
 
 #: spectral paths of the volume constants (tests/plugin/test_fast_paths.py): computed once per

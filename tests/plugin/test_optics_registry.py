@@ -150,15 +150,33 @@ def test_each_model_needs_its_required_properties(model):
         assert name in load_error(model_props(model, rest))
 
 
-@pytest.mark.parametrize("model", sorted(MODELS))
-def test_each_model_refuses_the_other_grain_properties(model):
+#: (model, a grain property it does not allow): the plugin's message
+REFUSALS = {
+    (model, name): f'powder: property "{name}" cannot be used with grains = "{model}"; it is '
+                   'used only with grains = "agglomerate"'
+    for model in ("sphere", "slab")
+    for name in ("agglomerate_radius", "agglomerate_fill", "mixing")
+} | {
+    ("agglomerate", name): f'powder: property "{name}" cannot be used with grains = '
+                           '"agglomerate" (one population); it is used only with grains = '
+                           '"sphere" or "slab"'
+    for name in ("radius2", "fraction2")
+}
+
+
+def test_refusals_cover_every_model_and_property():
+    pairs = {(model, name) for model, rule in MODELS.items()
+             for name in {n for m in MODELS.values() for n in m["allowed"]} - set(rule["allowed"])}
+    assert pairs == set(REFUSALS)
+
+
+@pytest.mark.parametrize("model,name", sorted(REFUSALS))
+def test_each_model_refuses_the_other_grain_properties(model, name):
+    """Each grain property a model does not allow, given alone beside the model's required
+    ones, is refused with the message naming it, the model and the models that allow it."""
     use_variant("scalar_rgb")
-    rule = MODELS[model]
-    others = {n for m in MODELS.values() for n in m["allowed"]} - set(rule["allowed"])
-    for name in sorted(others):
-        extra = [name] + (["radius2", "fraction2"] if name in ("radius2", "fraction2") else [])
-        text = load_error(model_props(model, sorted(set(rule["required"] + extra))))
-        assert name in text or "radius2" in text, text
+    text = load_error(model_props(model, MODELS[model]["required"] + [name]))
+    assert REFUSALS[model, name] in text, text
 
 
 @pytest.mark.parametrize("model", sorted(MODELS))

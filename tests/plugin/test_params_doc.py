@@ -17,7 +17,13 @@ ROOT = Path(__file__).resolve().parents[2]
 SOURCE = "\n".join(p.read_text() for p in sorted((ROOT / "src" / "bsdfs").glob("powder*")))
 DOCS = (ROOT / "docs" / "powder.md").read_text()
 
-_NUMBER = {"0.0": "0", "1.0": "1", "-1.0": "-1", "Inf": "inf", "0.5 * M_PI": "pi/2"}
+_NUMBER = {"Inf": "inf", "0.5 * M_PI": "pi/2"}
+
+
+def number(token: str) -> str:
+    """A range end of the table as the docs (and the plugin's messages, %g) write it."""
+    token = token.strip()
+    return _NUMBER[token] if token in _NUMBER else f"{float(token):g}"
 
 
 def table_rows() -> list[dict]:
@@ -29,8 +35,8 @@ def table_rows() -> list[dict]:
                          r'\{\s*([^,]+),\s*([^,]+),\s*(true|false),\s*(true|false)\s*\},\s*'
                          r'(true|false)\s*\}', body):
         name, _unit, def_doc, lo, hi, lo_c, hi_c, _fit = m.groups()
-        rng = ("[" if lo_c == "true" else "(") + _NUMBER.get(lo.strip(), lo.strip()) + ", " + \
-            _NUMBER.get(hi.strip(), hi.strip()) + ("]" if hi_c == "true" else ")")
+        rng = ("[" if lo_c == "true" else "(") + number(lo) + ", " + number(hi) + \
+            ("]" if hi_c == "true" else ")")
         rows.append({"name": name, "default": def_doc, "range": rng})
     return rows
 

@@ -9,43 +9,13 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import evaluate, random_hemisphere, sample, use_variant
+from helpers import evaluate, extreme_directions, extreme_samples, sample, use_variant
 
 RHOS = [0.0, 1e-6, 1.0 - 1e-6, 1.0]
 GS = [-0.99, 0.99]
 KAPPAS = [1e-4, 1.0, 1e4]
 TAUS = [0.0, 2.0 / 3.0, 1e3]
 N_PER_SET = 14_000  # x 72 parameter sets ~ 1.0e6 inputs
-
-
-def extreme_directions(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Random pairs mixed with grazing (mu down to 1e-7), normal, exact back-scattering and
-    exact mirror configurations."""
-    wi = random_hemisphere(n, rng)
-    wo = random_hemisphere(n, rng)
-    k = n // 8
-    for block, mu in enumerate([1e-7, 1e-6, 1e-4]):
-        sl = slice(block * k, (block + 1) * k)
-        phi = rng.uniform(0, 2 * np.pi, k)
-        s = np.sqrt(1 - mu * mu)
-        wi[sl] = np.stack([s * np.cos(phi), s * np.sin(phi), np.full(k, mu)], 1)
-    wo[3 * k:4 * k] = wi[3 * k:4 * k]                               # exact back-scattering
-    wo[4 * k:5 * k] = wi[4 * k:5 * k] * np.array([-1.0, -1.0, 1.0])  # exact mirror
-    wo[5 * k:6 * k] = wi[:k]                                         # grazing back-scattering
-    wi[6 * k:7 * k] = wo[6 * k:7 * k] = [0.0, 0.0, 1.0]              # normal
-    wo[7 * k:] = wi[:n - 7 * k] * np.array([-1.0, -1.0, 1.0])        # grazing mirror
-    return wi, wo
-
-
-def extreme_samples(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    s1 = rng.random(n)
-    s2 = rng.random((n, 2))
-    below_one = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
-    s2[::5] = 0.0
-    s2[1::5] = below_one
-    s1[2::7] = 0.0
-    s1[3::7] = below_one
-    return s1, s2
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral"])

@@ -164,10 +164,10 @@ def test_constant_parameters_are_still_floats():
 
 @pytest.mark.parametrize("name,values,fragment", [
     ("g", [0.1, 0.2, 1.0, 0.3], "valid range is (-1, 1)"),
-    ("extinction", [0.0, 1.0, 1.0, 1.0], "valid range is (0, inf)"),
-    ("amplitude_volume", [1.0, -0.1, 1.0, 1.0], "valid range is [0, inf)"),
+    ("extinction", [0.0, 1.0, 1.0, 1.0], "valid range is [1e-08, inf)"),
+    ("amplitude_volume", [1.0, -0.1, 1.0, 1.0], "valid range is [0, 1e+16]"),
     ("thickness", [1.0, np.inf, 1.0, 1.0], "valid range is [0, inf)"),
-    ("sigma", [0.1, 0.1, 0.1, 2.0], "valid range is (0, 1.5708]"),
+    ("sigma", [0.1, 0.1, 0.1, 2.0], "valid range is [1e-18, 1.5708]"),
     ("g", [0.1, np.nan, 0.1, 0.1], "NaN"),
 ])
 def test_out_of_range_texture_values_are_errors(name, values, fragment):

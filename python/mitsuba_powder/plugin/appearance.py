@@ -164,7 +164,7 @@ def _visible_wavelengths(wavelengths_nm) -> np.ndarray:
 
 
 def powder_colour(
-    radius: float = float(registry.DEFAULTS["radius"]),
+    radius: float | None = None,
     radius2: float | None = None,
     fraction2: float | None = None,
     material: str = str(registry.DEFAULTS["material"]),
@@ -175,7 +175,8 @@ def powder_colour(
     """Albedo, efficiencies, tau_o, reflectance spectrum and colour of a powder.
 
     Args:
-        radius: grain radius, micrometres.
+        radius: grain radius, micrometres (default: the plugin's; none with an ``albedo``
+            in ``properties``, which replaces the grains: a radius beside it is an error).
         radius2, fraction2: radius (micrometres) and volume fraction of a second grain
             population (both or neither).
         material: ``"hematite"``, ``"magnetite"`` or a refractiveindex.info YAML path.
@@ -195,7 +196,11 @@ def powder_colour(
         raise ValueError("give both radius2 and fraction2, or neither")
     check_range("samples", samples, 16)
 
-    props = {"type": "powder", "radius": radius, **properties}
+    if radius is None and "albedo" not in properties:
+        radius = float(registry.DEFAULTS["radius"])
+    props = {"type": "powder", **properties}
+    if radius is not None:
+        props["radius"] = radius
     if "eta" not in properties:
         props["material"] = material
     if radius2 is not None:
