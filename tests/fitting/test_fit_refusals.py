@@ -14,6 +14,7 @@ from mitsuba_powder.cli import main
 from mitsuba_powder.fitting.report import dumps_report, statistics
 from mitsuba_powder.io.measurements import MeasurementError, Measurements, load_measurements
 from mitsuba_powder.outputs import OutputError, check_finite_json
+from mitsuba_powder.plugin import registry
 
 HEADER = "theta_i,theta_o,phi,wavelength,brf\n"
 #: Ten SYNTHETIC rows at one wavelength (made-up BRF values, for the refusals only)
@@ -43,8 +44,9 @@ def refused(capsys, args: list[str], out: Path, *fragments: str) -> str:
     ("albedo=-0.5", ["albedo = -0.5", "[0, 1]"]),
     ("albedo=nan", ["albedo = nan", "[0, 1]"]),
     ("g=1.5", ["g = 1.5", "(-1, 1)"]),
-    ("extinction=0", ["extinction = 0.0", "(0, inf)"]),
-    ("amplitude_surface=-1e-4", ["amplitude_surface = -0.0001", "[0, inf)"]),
+    ("extinction=0", ["extinction = 0.0", str(registry.INTERVALS["extinction"])]),
+    ("amplitude_surface=-1e-4", ["amplitude_surface = -0.0001",
+                                 str(registry.INTERVALS["amplitude_surface"])]),
     ("g=abc", ["g = 'abc' is not a number"]),
 ])
 def test_fit_refuses_a_fixed_value_no_powder_has(tmp_path, capsys, setting, fragments):
