@@ -92,7 +92,8 @@ def main() -> None:
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=str(ROOT))
         if proc.returncode != 0:
             raise RuntimeError(f"job {name} failed:\n{proc.stderr}")
-        info = json.loads(proc.stdout.strip().splitlines()[-1])
+        last = proc.stdout.strip().splitlines()[-1]  # after Mitsuba's log lines (colour codes)
+        info = json.loads(last[last.index("{"):])
         if name.startswith("baseline"):
             base[name] = info["peak_rss_mib"]
         rows.append({"job": name, "what": info.get("what", "import + one powder BSDF"),

@@ -24,6 +24,7 @@ from mitsuba_powder.fitting.report import (
     write_report,
 )
 from mitsuba_powder.io.measurements import save_measurements
+from mitsuba_powder.outputs import MANIFEST
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
