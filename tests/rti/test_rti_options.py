@@ -49,7 +49,7 @@ CASES = {
                          lambda c: _fit(c, gain_trend=GainTrend(spread=0.1)),
                          "gain_spread = 0.1 needs gain_model = 'smooth' (it is 'none')", None),
     "memory": (["--memory-gb", "0"], lambda c: _fit(c, memory_gb=0),
-               "memory_gb = 0 is out of range; valid range is (0, inf)", "--memory-gb"),
+               "memory_gb = 0 is out of range; valid range is [0.015625, inf) GiB", "--memory-gb"),
     "memory_text": (["--memory-gb", "lots"], lambda c: _fit(c, memory_gb="lots"),
                     "memory_gb = 'lots' is not a number", "--memory-gb"),
     "gain_pixels": (["--gain-pixels", "0"], lambda c: _fit(c, gain_subsample=0),
@@ -181,6 +181,8 @@ def test_a_fit_checks_its_options_and_capture_once_whatever_its_stages(monkeypat
     monkeypatch.setattr(rf, "fit_maps", _counting(rf.fit_maps, calls, "fit_maps"))
     cap = rf.synthetic_capture(16, 16, 12, noise=0.005, seed=2, light_distance=3.0)
     fixed = {n: cap["maps"][n] for n in ("amplitude_volume", "g", "extinction")}
+    # a budget below the fit's smallest, so that 256 pixels need several blocks
+    monkeypatch.setattr(rf.blocks, "MIN_MEMORY_GB", 1e-4)
     result = fit_module.fit_maps(cap["images"], cap["directions"], fixed=fixed, rounds=1,
                                  max_iterations=3, light_distance="fit", gain_subsample=100,
                                  memory_gb=0.0005)

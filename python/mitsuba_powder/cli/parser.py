@@ -50,6 +50,9 @@ def _add_capture_options(p: argparse.ArgumentParser, use: str) -> None:
                         "value / full scale is linear (default srgb)")
     p.add_argument("--mask", default=None,
                    help=f"mask image (PNG): pixels above half scale are {use}")
+    p.add_argument("--saturation", default=None, metavar="LEVEL",
+                   help="observations with a channel at or above this linear level are left "
+                        "out of the powder fit (> 0; default 0.99 of full scale)")
     _add_light_options(p)
 
 

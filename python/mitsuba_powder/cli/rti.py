@@ -18,6 +18,7 @@ from .common import _fixed_properties, _names
 
 #: How messages name the fit's options given by a flag of another name
 FLAGS = {"light_distance": "--light-distance", "memory_gb": "--memory-gb",
+         "saturation": "--saturation",
          "gain_subsample": "--gain-pixels", "tile_size": "--tile-size", "workers": "--workers",
          "scheduler": "--scheduler"}
 
@@ -59,6 +60,8 @@ def _fit_options(args: argparse.Namespace, tiled: bool = False, **given):
         given["gain_subsample"] = _number(args.gain_pixels)
     if args.light_distance is not None:
         given["light_distance"] = args.light_distance
+    if args.saturation is not None:
+        given["saturation"] = _number(args.saturation)
     trend = GainTrend(args.gain_model, _number(args.gain_degree), 0, _number(args.gain_spread))
     if not tiled:
         given["gain_trend"] = trend
@@ -202,6 +205,8 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
         raise ValueError(f"--models {args.models!r}: unknown {unknown}; valid models are "
                          f"{', '.join(list(BASELINES) + ['powder'])}")
     given = {} if args.light_distance is None else {"light_distance": args.light_distance}
+    if args.saturation is not None:
+        given["saturation"] = _number(args.saturation)
     options = fit_options(free=_names(args.free), fixed=_fixed_properties(args.set),
                           names=FLAGS, **given)
     size = _pixel_size(args)
@@ -213,7 +218,8 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
         raise ValueError(f"--field = {field!r} needs a finite light distance (--light-distance "
                          "R or fit, or an .lp of positions)")
     models = _compared_models(names, field, distance, options)
-    comp = compare(capture, models, phase=args.phase, light_distance=distance)
+    comp = compare(capture, models, phase=args.phase, light_distance=distance,
+                   saturation=options.saturation, saturation_name=options.name("saturation"))
     path = write_comparison(comp, args.out, error_images=not args.no_error_images)
     print(path.read_text())
     print(f"wrote {final_path(path)}, compare.json" + ("" if args.no_error_images else

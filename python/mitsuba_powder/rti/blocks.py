@@ -27,9 +27,9 @@ from .._checks import check_range
 from ..variants import use_variant
 from .result import MapsResult
 
-__all__ = ["LANE_BYTES", "LANE_SHARE", "MEMORY_GB_MAX", "OBSERVATION_BYTES", "SUMMED",
-           "block_pixels", "check_memory", "default_memory_gb", "lanes_within", "merge_block",
-           "merge_fit_settings", "peak_memory_mib", "pixel_blocks", "release"]
+__all__ = ["LANE_BYTES", "LANE_SHARE", "MEMORY_GB_MAX", "MIN_MEMORY_GB", "OBSERVATION_BYTES",
+           "SUMMED", "block_pixels", "check_memory", "default_memory_gb", "lanes_within",
+           "merge_block", "merge_fit_settings", "peak_memory_mib", "pixel_blocks", "release"]
 
 #: Largest default working memory of a fit, GiB (:func:`default_memory_gb`)
 MEMORY_GB_MAX = 1.5
@@ -59,11 +59,17 @@ def default_memory_gb() -> float:
     return float(min(MEMORY_GB_MAX, max(total / 8.0, 0.25)))
 
 
+#: The smallest memory budget of a fit, GiB (16 MiB: about 11,000 lanes a launch and 1,100
+#: pixels a block at 50 lights; much less fits a handful of pixels per launch and takes hours)
+MIN_MEMORY_GB = 1.0 / 64
+
+
 def check_memory(memory_gb: float | str | None, name: str = "memory_gb") -> float:
-    """``memory_gb`` (GiB) checked (> 0, finite), or the default (None)."""
+    """``memory_gb`` (GiB) checked (>= :data:`MIN_MEMORY_GB`, finite), or the default
+    (None)."""
     if memory_gb is None:
         return default_memory_gb()
-    return check_range(name, memory_gb, 0.0, math.inf, "()")
+    return check_range(name, memory_gb, MIN_MEMORY_GB, math.inf, "[)", note="GiB")
 
 
 def block_pixels(memory_gb: float, lights: int) -> int:

@@ -43,7 +43,10 @@ import numpy as np
 from ..outputs import output_path
 from .baselines import BASELINES, fit_baseline
 from .capture import Capture, encode
+from .checks import check_directions
+from .inputs import check_lights, check_signal
 from .lights import distance_to_json
+from .options import DEFAULTS
 
 __all__ = ["PROTOCOLS", "Comparison", "Row", "baseline_fitter", "compare", "held_out",
            "write_comparison"]
@@ -136,7 +139,8 @@ class Comparison:
 
 def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | None = None,
             protocols: Sequence[str] = PROTOCOLS, phase: int = 4,
-            light_distance: float = math.inf) -> Comparison:
+            light_distance: float = math.inf, saturation: float = DEFAULTS["saturation"],
+            saturation_name: str = "saturation") -> Comparison:
     """Fit each model on the kept lights and score it on the held-out ones, per protocol.
 
     Args:
@@ -149,6 +153,11 @@ def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | Non
         light_distance: the distance of the lights (image widths) that the near-field models
             (rows ``<model>_near``) use, recorded in the capture's description (``inf``:
             none).
+        saturation: the level at or above which an observation is saturated; a capture
+            whose pixels mostly see fewer than 3 lights below it (or above 0) is refused
+            (:func:`~mitsuba_powder.rti.inputs.check_signal`), as is one of fewer than 3
+            lights or lights in one plane (:func:`~mitsuba_powder.rti.inputs.check_lights`).
+        saturation_name: how messages name ``saturation`` (e.g. ``--saturation``).
 
     Returns:
         A :class:`Comparison`.
@@ -161,6 +170,8 @@ def compare(capture: Capture, models: Mapping[str, Fitter] | Sequence[str] | Non
         raise ValueError("no model to compare")
     dirs, mask = capture.directions, capture.mask
     sel = np.ones(capture.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    check_lights(check_directions(dirs))
+    check_signal(capture.images, sel, saturation, saturation_name)
     rows: list[Row] = []
     maps: dict = {}
     for protocol in protocols:

@@ -18,7 +18,8 @@ from .options import FitOptions
 from .pixels import PixelData
 from .properties import MAP_PROPERTIES, GrainAlbedo, property_map
 
-__all__ = ["FitData", "FitInputs", "check_inputs", "check_mask"]
+__all__ = ["MIN_LIGHTS", "FitData", "FitInputs", "check_inputs", "check_lights", "check_mask",
+           "check_signal"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,8 +148,10 @@ def check_inputs(images: np.ndarray, directions: np.ndarray, options: FitOptions
     d = check_directions(directions)
     if len(d) != k:
         raise ValueError(f"directions has {len(d)} rows for {k} images; expected one per image")
+    check_lights(d)
     gains = check_gains(options.gains.initial, k)
     mask = check_mask(mask, (h, w))
+    check_signal(imgs, mask, options.saturation, options.name("saturation"))
     fixed = options.fixed
     maps = {n: property_map(n, v, (h, w)) for n, v in fixed.items() if n in MAP_PROPERTIES}
     grain = GrainAlbedo(options.grain_name, options.settings) if options.albedo_from_grains \
@@ -159,6 +162,59 @@ def check_inputs(images: np.ndarray, directions: np.ndarray, options: FitOptions
     if not isinstance(options.light_distance, str):
         check_distance(options.light_distance, (h, w), options.name("light_distance"))
     return FitInputs(imgs, d, mask, gains, maps, albedo, size, grain, options)
+
+
+#: Lights a pixel needs to be fitted: three in different directions give its normal and
+#: albedo (Lambertian photometric stereo, the fit's start)
+MIN_LIGHTS = 3
+
+#: Directions whose smallest singular value is below this fraction of the largest lie in
+#: one plane through the sample: photometric stereo cannot tell the normal's component
+#: out of that plane
+PLANAR_LIGHTS = 1e-3
+
+
+def check_lights(d: np.ndarray) -> None:
+    """At least :data:`MIN_LIGHTS` unit light directions ``d`` (K, 3), not all in one plane
+    through the sample."""
+    k = len(d)
+    if k < MIN_LIGHTS:
+        raise ValueError(f"the capture has {k} light(s); a per-pixel fit needs at least "
+                         f"{MIN_LIGHTS}, in directions not all in one plane (each pixel's "
+                         "normal and albedo by photometric stereo)")
+    sv = np.linalg.svd(d, compute_uv=False)
+    if sv[2] < PLANAR_LIGHTS * sv[0]:
+        raise ValueError(f"the capture's {k} light directions lie in one plane through the "
+                         f"sample (singular values {sv[0]:.3g}, {sv[1]:.3g}, {sv[2]:.3g}); a "
+                         "per-pixel fit needs lights out of that plane to find the normal")
+
+
+def check_signal(images: np.ndarray, mask: np.ndarray, saturation: float,
+                 name: str = "saturation") -> np.ndarray:
+    """The pixels of ``mask`` that see at least :data:`MIN_LIGHTS` lights with a signal
+    (every channel below ``saturation`` and one above 0), bool (H, W); an error when they
+    are fewer than half the masked pixels (a saturated or black capture: nothing to fit).
+    """
+    lit = np.zeros(mask.shape, dtype=np.int32)
+    for img in images:  # one image at a time: no (K, H, W) temporaries
+        lit += (np.max(img, axis=2) < saturation) & (np.max(img, axis=2) > 0)
+    fittable = (lit >= MIN_LIGHTS) & mask
+    n, m = int(fittable.sum()), int(mask.sum())
+    if 2 * n < m:
+        saturated = sum(int(np.sum(np.all(img >= saturation, axis=2)[mask])) for img in images)
+        black = sum(int(np.sum(np.all(img <= 0, axis=2)[mask])) for img in images)
+        total = len(images) * m
+        hint = ("take the capture with a shorter exposure, leave those pixels out of the "
+                f"mask, or raise {name} if the encoding's maximum is not saturation"
+                if saturated >= black else
+                "check that the images are those of the capture and its lights, or leave the "
+                "pixels no light reaches out of the mask")
+        raise ValueError(
+            f"{m - n} of the {m} masked pixels see fewer than {MIN_LIGHTS} lights with a "
+            f"signal (of {total} observations, {saturated} are saturated: every channel >= "
+            f"{name} = {saturation:g}, and {black} are black: every channel <= 0); nothing "
+            f"to fit there: {hint}")
+    return fittable
 
 
 def check_mask(mask: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:

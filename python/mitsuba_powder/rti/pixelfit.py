@@ -17,7 +17,7 @@ import numpy as np
 from ..fitting.optimise import ParamSpec
 from .blocks import merge_block, pixel_blocks, release
 from .forward import PixelEvaluator, normals_of_slopes, pixel_chunks
-from .gains import gain_step
+from .gains import gain_step, uninformed_lights
 from .inputs import FitData, FitInputs
 from .lights import distance_to_json
 from .options import FitOptions
@@ -161,6 +161,7 @@ class _State:
     value: np.ndarray       # (P, K, 3) float32, the model without gain at the fitted rows
     chunks: list[slice]
     information: np.ndarray | None = None  # (K,) diagonal of the gains' reduced system
+    held: np.ndarray | None = None         # lights whose gains were held in the last step
     iterations: int = 0
     evaluations: int = 0
 
@@ -207,7 +208,7 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
         # every round starts from the Lambertian start under the current gains: a warm start
         # would keep pixels in the surface-lobe basin the previous gains led them to
         y_start = starts(state.gains, state.weights)[0] if r > 0 else state.y
-        _round(ev, data, layout, state, y_start, with_gains)
+        _round(ev, data, layout, state, y_start, with_gains, log)
         model = state.value * data.light_gains(state.gains)
         if not last:
             state.weights = data.flags(model)
@@ -219,7 +220,7 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
 
 
 def _round(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
-           y_start: np.ndarray, with_gains: bool) -> None:
+           y_start: np.ndarray, with_gains: bool, log: Log) -> None:
     """One round: every chunk of pixels fitted from ``y_start``; with ``with_gains`` a
     Gauss-Newton step of the gains on the reduced system the chunks add up to (their mean
     held), smoothed by the gains' trend in mode ``smooth``."""
@@ -231,10 +232,22 @@ def _round(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
             reduced = reduced[0] + part[0], reduced[1] + part[1]
     if with_gains:
         trend = data.options.gains.trend
+        held = np.nonzero(uninformed_lights(reduced[0]))[0]
+        if len(held) and (state.held is None or not np.array_equal(held, state.held)):
+            log(f"gains: {len(held)} light(s) see too little to fit their gain (images "
+                f"{_numbers(held)}: below the object's horizon, shadowed or saturated "
+                "everywhere): held")
+        state.held = held
         state.gains = gain_step(state.gains, *reduced, data.scale)
         state.information = np.diag(reduced[0]).copy()
         if trend.mode == "smooth":
             state.gains = trend.smooth(data.d, state.gains, state.information, data.scale)
+
+
+def _numbers(indices: np.ndarray, most: int = 12) -> str:
+    """Image indices as text, the first ``most`` of them."""
+    text = ", ".join(str(int(i)) for i in indices[:most])
+    return text + (f" and {len(indices) - most} more" if len(indices) > most else "")
 
 
 # ---------------------------------------------------------------------------
@@ -263,6 +276,10 @@ def _result(ev: PixelEvaluator, data: FitData, layout: list, specs: Mapping[str,
     # a pixel with fewer used observations than variables is not determined: NaN residual
     underdetermined = 3 * wt.sum(axis=1) < len(layout)
     rms_map[underdetermined] = np.nan
+    if np.any(underdetermined):
+        log(f"{int(underdetermined.sum())} of {npix} pixels have fewer used observations "
+            f"than variables ({len(layout)}): their maps are the start's, their residual "
+            "NaN (saturated, black or shadowed under most lights)")
     used = np.zeros((k, h, w), dtype=bool)
     used[:, data.mask] = (wt > 0).T
     return MapsResult(

@@ -39,7 +39,8 @@ from .options import FitOptions
 from .pixelfit import Log, fit_in_blocks
 from .result import MapsResult
 
-__all__ = ["FitPlan", "FitState", "Stage", "fit_distance", "make_plan", "run_fit", "run_plan"]
+__all__ = ["FitPlan", "FitState", "Stage", "check_finite", "fit_distance", "make_plan",
+           "run_fit", "run_plan"]
 
 
 @dataclass
@@ -109,7 +110,7 @@ def run_plan(plan: FitPlan, progress: Callable[[str], None] | None = None) -> Ma
     t0 = time.perf_counter()
     log = Log(progress)
     state = run_stages(plan, log)
-    return _finish(state, log, t0)
+    return check_finite(_finish(state, log, t0))
 
 
 def run_stages(plan: FitPlan, log: Log, names: tuple[str, ...] | None = None) -> FitState:
@@ -189,6 +190,30 @@ def fit_blocks(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> Fi
     """Stage ``blocks``: every pixel of the stage, in blocks within the memory budget."""
     return replace(state, result=fit_in_blocks(inputs, stage.pixels, state.options,
                                                state.gains, state.light_distance, log))
+
+
+def check_finite(result: MapsResult) -> MapsResult:
+    """``result``, if its gains and its maps inside the mask are finite; else a
+    ``RuntimeError`` naming what is not (which maps, how many pixels, the first of them, which
+    lights), never maps with NaN or infinity where pixels were fitted."""
+    gains = np.asarray(result.gains, dtype=np.float64)
+    if not np.all(np.isfinite(gains)):
+        bad = np.nonzero(~np.isfinite(gains))[0]
+        raise RuntimeError(f"the fit diverged: the gains of lights {bad.tolist()[:12]} are not "
+                           "finite; no maps written (a light that sees nothing with gains "
+                           "fitted: hold them, gains fixed)")
+    mask = result.mask
+    named = {"normal": result.normals, "albedo": result.albedo, **result.maps}
+    for name, m in named.items():
+        values = np.asarray(m)[mask]
+        bad = ~np.isfinite(values) if values.ndim == 1 else ~np.all(np.isfinite(values), axis=1)
+        if np.any(bad):
+            ys, xs = np.nonzero(mask)
+            i = int(np.nonzero(bad)[0][0])
+            raise RuntimeError(f"the fit diverged: the {name} map is not finite at "
+                               f"{int(bad.sum())} of {int(mask.sum())} fitted pixels (first "
+                               f"at x = {int(xs[i])}, y = {int(ys[i])}); no maps written")
+    return result
 
 
 def _finish(state: FitState, log: Log, t0: float) -> MapsResult:

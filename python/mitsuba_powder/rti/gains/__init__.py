@@ -10,7 +10,8 @@ calibration: only the gains relative to it are fitted). Everything about them is
   (:mod:`mitsuba_powder.rti.tiles`) fit them on a subsample with
   :meth:`GainPolicy.on_subsample` and hold them with :meth:`GainPolicy.held`;
 * :mod:`.step`: their Gauss-Newton step in the fit's alternation, every pixel's variables
-  eliminated (:func:`gain_system`, :func:`gain_step`); each per-pixel solver gives its
+  eliminated (:func:`gain_system`, :func:`gain_step`; the gains of lights that see too
+  little, :func:`uninformed_lights`, are held); each per-pixel solver gives its
   pixels' part of that reduced system (``model(rows, gain_terms=True)``);
 * :mod:`.trend`: the gains as a smooth function of the light's direction
   (:class:`GainTrend`: how a fit extends them to lights it did not fit; :class:`GainModel`,
@@ -22,7 +23,7 @@ from __future__ import annotations
 import warnings
 
 from .policy import GAIN_MODES, GAIN_PIXELS, GainPolicy, gain_policy, gain_sample
-from .step import gain_step, gain_system
+from .step import MIN_INFORMATION, gain_step, gain_system, uninformed_lights
 from .trend import (
     GAIN_MODEL_MODES,
     MAX_AZIMUTH_ORDER,
@@ -34,8 +35,9 @@ from .trend import (
 )
 
 __all__ = ["GAIN_MODEL_MODES", "GAIN_MODES", "GAIN_PIXELS", "MAX_AZIMUTH_ORDER", "MAX_DEGREE",
-           "GainModel", "GainPolicy", "GainTrend", "fit_gain_model", "gain_basis",
-           "gain_policy", "gain_sample", "gain_step", "gain_system"]
+           "MIN_INFORMATION", "GainModel", "GainPolicy", "GainTrend", "fit_gain_model",
+           "gain_basis", "gain_policy", "gain_sample", "gain_step", "gain_system",
+           "uninformed_lights"]
 
 
 def __getattr__(name: str):
