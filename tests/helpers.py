@@ -480,6 +480,33 @@ def write_exr_capture(folder: Path, capture: dict) -> Path:
     return folder / "dirs.lp"
 
 
+def write_image_capture(folder: Path, images: np.ndarray, directions: np.ndarray,
+                        encoding: str = "srgb", bit_depth: int = 8) -> Path:
+    """Write a capture's ``images`` (K, H, W, 3) as PNG files ``light00.png``... (8 or 16 bit,
+    ``encoding`` srgb or linear) and ``dirs.lp`` into ``folder`` (made if needed); returns the
+    ``.lp`` path."""
+    from mitsuba_powder import rti
+
+    folder.mkdir(parents=True, exist_ok=True)
+    names = [f"light{k:02d}.png" for k in range(len(directions))]
+    rti.write_lp(folder / "dirs.lp", names, directions)
+    like = rti.Capture(images=images, directions=directions, names=names, encoding=encoding,
+                       file_format="png", bit_depth=bit_depth)
+    rti.write_images(like, images, names, folder)
+    return folder / "dirs.lp"
+
+
+def png_capture(tmp_path_factory, seed: int) -> Path:
+    """A folder with a SYNTHETIC 8 x 8 px capture under 12 lights (``seed``), 8-bit PNG (sRGB)
+    and ``dirs.lp``."""
+    from mitsuba_powder import rti
+
+    folder = tmp_path_factory.mktemp("capture")
+    cap = rti.synthetic_capture(8, 8, lights=12, noise=0.005, seed=seed)
+    write_image_capture(folder, cap["images"], cap["directions"])
+    return folder
+
+
 def lambertian_capture(shape: tuple[int, int], lights: int, r: float = float("inf"),
                        tilt: float = 0.03, gains=None, seed: int = 3) -> dict:
     """A SYNTHETIC Lambertian capture (no powder): normals tilted from z by about ``tilt``

@@ -11,16 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import png_capture
 from mitsuba_powder.cli import main
 from mitsuba_powder.readers import FileFormatError, read_bitmap, read_json, read_text
 from mitsuba_powder.rendering import photo
 from mitsuba_powder.rti import (
-    Capture,
     MapsResult,
-    synthetic_capture,
     synthetic_maps,
-    write_images,
-    write_lp,
 )
 from mitsuba_powder.rti.capture import read_lp
 from mitsuba_powder.rti.maps import write_maps
@@ -71,14 +68,7 @@ def test_a_binary_json_given_as_params_is_named(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     """A SYNTHETIC 8 x 8 px capture under 12 lights, 8-bit PNG."""
-    folder = tmp_path_factory.mktemp("capture")
-    cap = synthetic_capture(8, 8, lights=12, noise=0.005, seed=6)
-    names = [f"light{k:02d}.png" for k in range(12)]
-    write_lp(folder / "dirs.lp", names, cap["directions"])
-    like = Capture(images=cap["images"], directions=cap["directions"], names=names,
-                   encoding="srgb", file_format="png", bit_depth=8)
-    write_images(like, cap["images"], names, folder)
-    return folder
+    return png_capture(tmp_path_factory, seed=6)
 
 
 def _copy(src: Path, dst: Path) -> Path:

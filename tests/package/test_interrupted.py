@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from helpers import png_capture
 from mitsuba_powder.cli import INTERRUPTED, main
 from mitsuba_powder.outputs import INCOMPLETE, STAGING, OutputError, output_path, staged_output
-from mitsuba_powder.rti import Capture, synthetic_capture, write_images, write_lp
 
 FAST = ["--rounds", "1", "--iterations", "4"]
 
@@ -26,14 +26,7 @@ def snapshot(root: Path) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     """A SYNTHETIC 8 x 8 px capture under 12 lights, 8-bit PNG."""
-    folder = tmp_path_factory.mktemp("capture")
-    cap = synthetic_capture(8, 8, lights=12, noise=0.005, seed=5)
-    names = [f"light{k:02d}.png" for k in range(12)]
-    write_lp(folder / "dirs.lp", names, cap["directions"])
-    like = Capture(images=cap["images"], directions=cap["directions"], names=names,
-                   encoding="srgb", file_format="png", bit_depth=8)
-    write_images(like, cap["images"], names, folder)
-    return folder
+    return png_capture(tmp_path_factory, seed=5)
 
 
 def test_an_interrupted_rerun_of_fit_maps_leaves_the_old_result_whole(tmp_path, capture,

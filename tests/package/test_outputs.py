@@ -15,6 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from helpers import png_capture
 from mitsuba_powder.cli import main
 from mitsuba_powder.outputs import (
     MANIFEST,
@@ -25,14 +26,7 @@ from mitsuba_powder.outputs import (
     output_names,
     output_path,
 )
-from mitsuba_powder.rti import (
-    Capture,
-    MapsResult,
-    synthetic_capture,
-    synthetic_maps,
-    write_images,
-    write_lp,
-)
+from mitsuba_powder.rti import MapsResult, synthetic_maps
 from mitsuba_powder.rti.maps import write_maps
 from mitsuba_powder.variants import use_variant
 
@@ -102,13 +96,7 @@ def test_output_path_refuses_escapes_and_inputs(tmp_path):
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     """A SYNTHETIC capture: 8 x 8 px, 12 lights, 8-bit PNG (sRGB), a mask image."""
-    folder = tmp_path_factory.mktemp("capture")
-    cap = synthetic_capture(8, 8, lights=12, noise=0.005, seed=4)
-    names = [f"light{k:02d}.png" for k in range(12)]
-    write_lp(folder / "dirs.lp", names, cap["directions"])
-    like = Capture(images=cap["images"], directions=cap["directions"], names=names,
-                   encoding="srgb", file_format="png", bit_depth=8)
-    write_images(like, cap["images"], names, folder)
+    folder = png_capture(tmp_path_factory, seed=4)
     mask = np.ones((8, 8, 1), np.uint8) * 255
     with use_variant("scalar_rgb"):
         mi.Bitmap(mask, mi.Bitmap.PixelFormat.Y).write(str(folder / "mask.png"))

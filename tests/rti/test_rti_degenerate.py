@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from helpers import write_image_capture
 from mitsuba_powder.cli import main
 from mitsuba_powder.rti import fit_maps
-from mitsuba_powder.rti.capture import Capture, write_images, write_lp
 from mitsuba_powder.rti.forward import render_capture
 from mitsuba_powder.rti.gains import MIN_INFORMATION, gain_step, uninformed_lights
 from mitsuba_powder.rti.plan import check_finite
@@ -29,17 +28,6 @@ TILT = 40.0  # degrees: 7 of the dome's 40 lights fall below the plane's horizon
 def small():
     """A SYNTHETIC capture of 8 x 8 pixels under 12 lights."""
     return synthetic_capture(8, 8, lights=12, noise=0.005)
-
-
-def write_capture(folder: Path, images: np.ndarray, directions: np.ndarray) -> Path:
-    """A capture on disk (16-bit PNG, linear), its .lp path."""
-    folder.mkdir(parents=True, exist_ok=True)
-    names = [f"light{k:02d}.png" for k in range(len(directions))]
-    write_lp(folder / "capture.lp", names, directions)
-    like = Capture(images=images, directions=directions, names=names, encoding="linear",
-                   file_format="png", bit_depth=16)
-    write_images(like, images, names, folder)
-    return folder / "capture.lp"
 
 
 def tilted_capture(tilt: float = TILT, size: int = 24) -> dict:
@@ -69,7 +57,8 @@ def test_saturated_capture_refused(small, tmp_path, capsys):
     with pytest.raises(ValueError, match=r"64 of the 64 masked pixels see fewer than 3 lights"
                        r".*768 are saturated.*saturation = 0\.99.*shorter exposure"):
         fit_maps(images, small["directions"])
-    lp = write_capture(tmp_path / "cap", images, small["directions"])
+    lp = write_image_capture(tmp_path / "cap", images, small["directions"],
+                             "linear", 16)
     for command in ("fit-maps", "compare-maps"):
         out = tmp_path / command
         assert main([command, str(lp), "--out", str(out), "--encoding", "linear"]) == 2
@@ -107,7 +96,7 @@ def test_coplanar_lights_refused(small):
 
 
 def test_one_light_cli_says_how_many(small, tmp_path, capsys):
-    lp = write_capture(tmp_path / "cap", small["images"][:1], small["directions"][:1])
+    lp = write_image_capture(tmp_path / "cap", small["images"][:1], small["directions"][:1])
     assert main(["fit-maps", str(lp), "--out", str(tmp_path / "o"), "--encoding",
                  "linear"]) == 2
     err = capsys.readouterr().err
@@ -118,7 +107,7 @@ def test_memory_budget_too_small_refused(small, tmp_path, capsys):
     with pytest.raises(ValueError, match=r"memory_gb = 1e-09 is out of range; valid "
                        r"range is \[0\.015625, inf\) GiB"):
         fit_maps(small["images"], small["directions"], memory_gb=1e-9)
-    lp = write_capture(tmp_path / "cap", small["images"], small["directions"])
+    lp = write_image_capture(tmp_path / "cap", small["images"], small["directions"])
     assert main(["fit-maps", str(lp), "--out", str(tmp_path / "o"), "--memory-gb",
                  "1e-9"]) == 2
     assert "--memory-gb = 1e-09 is out of range" in capsys.readouterr().err
