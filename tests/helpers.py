@@ -507,6 +507,23 @@ def png_capture(tmp_path_factory, seed: int) -> Path:
     return folder
 
 
+def known_maps_folder(folder: Path) -> Path:
+    """Write a maps folder of known SYNTHETIC maps (no fit; 8 x 8 px, for 12 lights) into
+    ``folder``; returns it."""
+    from mitsuba_powder.rti import MapsResult, synthetic_maps
+    from mitsuba_powder.rti.maps import write_maps
+
+    m, _ = synthetic_maps(8, 8, relief=0.3, seed=2)
+    props = {k: np.asarray(v, np.float32) for k, v in m.items() if k not in ("normal", "albedo")}
+    result = MapsResult(normals=m["normal"].astype(np.float32),
+                        albedo=m["albedo"].astype(np.float32), maps=props, settings={},
+                        residual_rms=np.zeros((8, 8), np.float32), gains=np.ones(12),
+                        used=np.ones((12, 8, 8), bool), free=["albedo"] + sorted(props),
+                        mask=np.ones((8, 8), bool))
+    write_maps(result, folder)
+    return folder
+
+
 def lambertian_capture(shape: tuple[int, int], lights: int, r: float = float("inf"),
                        tilt: float = 0.03, gains=None, seed: int = 3) -> dict:
     """A SYNTHETIC Lambertian capture (no powder): normals tilted from z by about ``tilt``

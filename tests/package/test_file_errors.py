@@ -11,16 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import png_capture
+from helpers import known_maps_folder, png_capture
 from mitsuba_powder.cli import main
 from mitsuba_powder.readers import FileFormatError, read_bitmap, read_json, read_text
 from mitsuba_powder.rendering import photo
-from mitsuba_powder.rti import (
-    MapsResult,
-    synthetic_maps,
-)
 from mitsuba_powder.rti.capture import read_lp
-from mitsuba_powder.rti.maps import write_maps
 from mitsuba_powder.variants import use_variant
 
 #: The first bytes of a UTF-16 file with a byte-order mark: not UTF-8
@@ -96,16 +91,7 @@ def test_a_corrupt_mask_is_named(tmp_path, capture, capsys):
 @pytest.fixture
 def maps(tmp_path) -> Path:
     """A maps folder of known SYNTHETIC maps (no fit), for the 12 lights of ``capture``."""
-    folder = tmp_path / "maps"
-    m, _ = synthetic_maps(8, 8, relief=0.3, seed=2)
-    props = {k: np.asarray(v, np.float32) for k, v in m.items() if k not in ("normal", "albedo")}
-    result = MapsResult(normals=m["normal"].astype(np.float32),
-                        albedo=m["albedo"].astype(np.float32), maps=props, settings={},
-                        residual_rms=np.zeros((8, 8), np.float32), gains=np.ones(12),
-                        used=np.ones((12, 8, 8), bool), free=["albedo"] + sorted(props),
-                        mask=np.ones((8, 8), bool))
-    write_maps(result, folder)
-    return folder
+    return known_maps_folder(tmp_path / "maps")
 
 
 def test_a_broken_fit_json_given_to_relight_is_named(tmp_path, maps, capture, capsys):

@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import png_capture
+from helpers import known_maps_folder, png_capture
 from mitsuba_powder.cli import main
 from mitsuba_powder.outputs import (
     MANIFEST,
@@ -26,8 +26,6 @@ from mitsuba_powder.outputs import (
     output_names,
     output_path,
 )
-from mitsuba_powder.rti import MapsResult, synthetic_maps
-from mitsuba_powder.rti.maps import write_maps
 from mitsuba_powder.variants import use_variant
 
 
@@ -106,16 +104,7 @@ def capture(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def maps(tmp_path_factory) -> Path:
     """A maps folder of known SYNTHETIC maps (no fit)."""
-    folder = tmp_path_factory.mktemp("maps")
-    m, _ = synthetic_maps(8, 8, relief=0.3, seed=2)
-    props = {k: np.asarray(v, np.float32) for k, v in m.items() if k not in ("normal", "albedo")}
-    result = MapsResult(normals=m["normal"].astype(np.float32),
-                        albedo=m["albedo"].astype(np.float32), maps=props, settings={},
-                        residual_rms=np.zeros((8, 8), np.float32), gains=np.ones(12),
-                        used=np.ones((12, 8, 8), bool), free=["albedo"] + sorted(props),
-                        mask=np.ones((8, 8), bool))
-    write_maps(result, folder)
-    return folder
+    return known_maps_folder(tmp_path_factory.mktemp("maps"))
 
 
 def _absolute_lp(capture: Path, path: Path, extra: str | None = None) -> None:
