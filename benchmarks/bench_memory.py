@@ -92,8 +92,12 @@ def main() -> None:
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=str(ROOT))
         if proc.returncode != 0:
             raise RuntimeError(f"job {name} failed:\n{proc.stderr}")
-        last = proc.stdout.strip().splitlines()[-1]  # after Mitsuba's log lines (colour codes)
-        info = json.loads(last[last.index("{"):])
+        # the job's JSON line, among Mitsuba's log lines and colour codes (a reset code may
+        # follow it at exit)
+        line = next((t for t in reversed(proc.stdout.splitlines()) if "{" in t), None)
+        if line is None:
+            raise RuntimeError(f"job {name} printed no result:\n{proc.stdout[-2000:]}")
+        info = json.loads(line[line.index("{"):])
         if name.startswith("baseline"):
             base[name] = info["peak_rss_mib"]
         rows.append({"job": name, "what": info.get("what", "import + one powder BSDF"),
