@@ -304,8 +304,8 @@ def test_cli_fit_maps_records_solver_memory_and_gain_pixels(tmp_path):
     lp = write_exr_capture(tmp_path, rf.synthetic_capture(12, 12, 10, noise=NOISE, seed=4))
     out = tmp_path / "maps"
     assert main(["fit-maps", str(lp), "--out", str(out), "--encoding",
-                 "linear", "--solver", "numpy", "--memory-gb", "0.5", "--gain-pixels",
-                 "64", "--rounds", "1"]) == 0
+                 "linear", "--solver", "numpy", "--memory-gb", "0.5", "--gains", "fit",
+                 "--gain-pixels", "64", "--rounds", "1"]) == 0
     fit = json.loads((out / "fit.json").read_text())["fit"]
     assert fit["solver"] == "numpy" and fit["memory_gb"] == 0.5
     assert fit["gain_pixels"] == 64 and fit["gains"] == "fit" and fit["blocks"] == 1

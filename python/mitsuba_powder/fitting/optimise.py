@@ -131,6 +131,7 @@ class LMState:
     cost: np.ndarray     #: (B,) sums of squared residuals
     iterations: int
     evaluations: int     #: batch evaluations (one per residual or Jacobian call)
+    unfinished: int = 0  #: starts still iterating when max_iterations stopped them
 
 
 def _normal_equations(jac: np.ndarray, res: np.ndarray, free: np.ndarray
@@ -173,10 +174,10 @@ def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterati
     """Damped Gauss-Newton from every row of ``y0`` at once.
 
     Each iteration evaluates the trial points of the active starts in one batch and the
-    Jacobian only where a step was kept. A start stops when a kept step lowers its cost by less
-    than ``ftol`` (relative), when its damping explodes (no descent left inside the box), or,
-    after ``patience`` iterations, when its cost exceeds ``hopeless`` times the best (another
-    basin; the polish only takes the best ones).
+    Jacobian only where a step was kept. A start stops when a step, kept or not, changes its
+    cost by less than ``ftol`` (relative), when its damping explodes (no descent left inside
+    the box), or, after ``patience`` iterations, when its cost exceeds ``hopeless`` times the
+    best (another basin; the polish only takes the best ones).
 
     Args:
         problem: the batched least-squares problem.
@@ -203,8 +204,10 @@ def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterati
         trial = np.clip(y[act] + step, problem.lower, problem.upper)
         trial_cost = np.sum(_padded(problem.residuals, trial) ** 2, axis=1)
         evaluations += 1
-        better = np.isfinite(trial_cost) & (trial_cost < cost[act])
-        gain = np.where(better, (cost[act] - trial_cost) / np.maximum(cost[act], 1e-300), 0.0)
+        cost_before = cost[act].copy()
+        better = np.isfinite(trial_cost) & (trial_cost < cost_before)
+        gain = np.where(better, (cost_before - trial_cost) / np.maximum(cost_before, 1e-300),
+                        0.0)
         damping[act] = np.where(better, np.maximum(damping[act] / 3.0, 1e-9),
                                 damping[act] * 4.0)
         kept = act[better]
@@ -215,13 +218,16 @@ def batch_levenberg_marquardt(problem: BatchProblem, y0: np.ndarray, max_iterati
             jtj[kept], jtr[kept] = _normal_equations(j_new, r_new, free)
             cost[kept] = np.sum(r_new**2, axis=1)
         done = np.zeros(len(y), dtype=bool)
-        done[act] = (better & (gain < ftol)) | (damping[act] > 1e7)
+        # a step that changes the cost by less than ftol (relative), kept or not: converged
+        flat = np.isfinite(trial_cost) & (np.abs(cost_before - trial_cost)
+                                          < ftol * np.maximum(cost_before, 1e-300))
+        done[act] = (better & (gain < ftol)) | flat | (damping[act] > 1e7)
         if iterations >= patience:
             done |= cost > hopeless * np.min(cost)
         active &= ~done
         if not active.any():
             break
-    return LMState(y, cost, iterations, evaluations)
+    return LMState(y, cost, iterations, evaluations, int(np.sum(active)))
 
 
 @dataclass

@@ -134,7 +134,7 @@ def merge_block(out: MapsResult, part: MapsResult) -> MapsResult:
 
 
 #: Diagnostics of ``fit_settings`` that add up over the blocks (or tiles) of a fit
-SUMMED = ("evaluations", "chunks", "underdetermined_pixels")
+SUMMED = ("evaluations", "chunks", "underdetermined_pixels", "pixels_at_cap_last_round")
 
 
 def merge_fit_settings(parts: Sequence[Mapping]) -> dict:
@@ -142,6 +142,7 @@ def merge_fit_settings(parts: Sequence[Mapping]) -> dict:
     diagnostics of :data:`SUMMED` summed and ``iterations_last_round`` the longest part's."""
     out = dict(parts[0])
     for key in SUMMED:
-        out[key] = sum(int(p[key]) for p in parts)
+        out[key] = sum(int(p.get(key, 0)) for p in parts)
     out["iterations_last_round"] = max(p["iterations_last_round"] for p in parts)
+    out["rounds_at_cap"] = max(int(p.get("rounds_at_cap", 0)) for p in parts)
     return out

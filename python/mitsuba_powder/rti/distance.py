@@ -30,7 +30,7 @@ import numpy as np
 from .lights import LightRig, half_diagonal, light_field, pixel_coordinates
 from .starts import lambertian_start
 
-__all__ = ["SCAN_POINTS", "SUBSAMPLE_PIXELS", "polish_inverse_distance",
+__all__ = ["SCAN_POINTS", "SUBSAMPLE_PIXELS", "polish_bracket", "polish_inverse_distance",
            "scan_inverse_distance", "subsample_mask"]
 
 #: Grid points of the scan in u = 1 / r
@@ -108,24 +108,40 @@ def polish_inverse_distance(cost: Callable[[float], float], us: np.ndarray,
                             ) -> tuple[float, list[tuple[float, float]]]:
     """Minimise ``cost(u)`` (the powder fit's) over the bracket of the scan's best grid point
     (module docstring, step 2) with a bounded Brent search of at most ``evaluations``
-    evaluations.
+    evaluations (:func:`polish_bracket`, u kept >= 0).
 
     Returns:
         u* (1/image width, >= 0) and the (u, cost) pairs evaluated.
     """
+    u, seen = polish_bracket(lambda u: cost(max(u, 0.0)), us, scan, evaluations)
+    return max(u, 0.0), seen
+
+
+def polish_bracket(cost: Callable[[float], float], grid: np.ndarray, scan: np.ndarray,
+                   evaluations: int = POLISH_EVALUATIONS, width: int = 1
+                   ) -> tuple[float, list[tuple[float, float]]]:
+    """Minimise ``cost(x)`` over the bracket of the best point of a scan (``scan`` the costs on
+    ``grid``; ``width`` grid points either side) by a bounded Brent search of at most
+    ``evaluations`` evaluations: the light
+    distance's polish (:func:`polish_inverse_distance`) and the exposure's
+    (:mod:`mitsuba_powder.rti.exposure`).
+
+    Returns:
+        the best x evaluated and the (x, cost) pairs evaluated.
+    """
     from scipy.optimize import minimize_scalar
 
     best = int(np.argmin(scan))
-    lo, hi = us[max(best - 1, 0)], us[min(best + 1, len(us) - 1)]
+    lo, hi = grid[max(best - width, 0)], grid[min(best + width, len(grid) - 1)]
     seen: list[tuple[float, float]] = []
 
-    def f(u: float) -> float:
-        value = cost(max(float(u), 0.0))
-        seen.append((float(u), value))
+    def f(x: float) -> float:
+        value = cost(float(x))
+        seen.append((float(x), value))
         return value
 
     minimize_scalar(f, bounds=(lo, hi), method="bounded",
                     options={"maxiter": max(int(evaluations) - 1, 1),
                              "xatol": 1e-3 * (hi - lo)})
-    u, _ = min(seen, key=lambda p: p[1])
-    return max(u, 0.0), seen
+    x, _ = min(seen, key=lambda p: p[1])
+    return x, seen

@@ -18,7 +18,8 @@ problem, with the same rules, without that array:
   step is projected onto the box, the trial's cost and normal equations come from the next
   kernel, and a pixel keeps its step where the cost went down: damping, acceptance and
   stopping per pixel exactly as :func:`~mitsuba_powder.fitting.optimise.batch_levenberg_marquardt`
-  (``lambda`` / 3 or x 4, stop on a relative decrease under ``ftol`` or ``lambda > 1e7``).
+  (``lambda`` / 3 or x 4, stop on a relative change of the cost under ``ftol``, the step kept
+  or not, or ``lambda > 1e7``).
   Only the pixels still active are evaluated (their indices by ``dr.compress``).
 * **Gains.** After a pixel's fit, one more kernel gives the model (for the shadow flags and
   the residual map) and, when the gains are fitted, the terms of their reduced system
@@ -327,7 +328,10 @@ class PixelSystem:
                 better = dr.isfinite(c_t) & (c_t < c_a)
                 gain = dr.select(better, (c_a - c_t) / dr.maximum(c_a, 1e-300), 0.0)
                 d_new = dr.select(better, dr.maximum(d_a / 3.0, 1e-9), d_a * 4.0)
-                done = (better & (gain < ftol)) | (d_new > 1e7)
+                # a step that changes the cost by less than ftol (relative), kept or not, ends
+                # the pixel: it is at its minimum to within the tolerance
+                flat = dr.isfinite(c_t) & (dr.abs(c_a - c_t) < ftol * dr.maximum(c_a, 1e-300))
+                done = (better & (gain < ftol)) | flat | (d_new > 1e7)
                 new_y = [dr.select(better, t, o) for t, o in zip(trial, y_a)]
                 new_ne = [dr.select(better, t, o) for t, o in zip(a_t + g_t, a_a + g_a)]
                 new_c = dr.select(better, c_t, c_a)
@@ -338,7 +342,8 @@ class PixelSystem:
                 dr.scatter(active, ~done, pix)
                 dr.eval(y, jtj, jtr, cost, damping, active)
             rows = np.stack([np.array(v, dtype=np.float64) for v in y], axis=1)
-            return SolverFit(rows, np.array(cost, dtype=np.float64), iterations)
+            at_cap = int(np.sum(np.array(active))) if iterations == max_iterations else 0
+            return SolverFit(rows, np.array(cost, dtype=np.float64), iterations, at_cap)
 
     # -- after the fit -------------------------------------------------------------------
 

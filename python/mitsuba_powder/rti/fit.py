@@ -17,10 +17,10 @@ normal and albedo from Lambertian photometric stereo (weighted least squares per
 vectorised), the Lambertian albedo mapped to the powder's single-scattering albedo through a
 table of the model; a free grain size from a search over 40 sizes (x 5 extinctions when
 ``extinction`` is free, with ``amplitude_volume`` in closed form when it is free); other
-properties at their defaults. Per-light gains ``E_k`` shared by all pixels alternate with the
-per-pixel fit: closed-form least squares given the per-pixel models
-(:func:`mitsuba_powder.rti.gains.gain_system`), normalised to mean 1 (the overall scale goes
-into the albedo and ``amplitude_volume``).
+properties at their defaults. Per-light gains ``E_k`` are held at the exposure by default
+(``gains="fixed"``: fitted gains absorb cast shadows and the model's error at grazing light);
+with ``gains="fit"`` they alternate with the per-pixel fit (Gauss-Newton on their reduced
+system, :func:`mitsuba_powder.rti.gains.gain_system`), their mean held at the exposure.
 
 **What a dome of lights determines.** Cramer-Rao bounds (1-sigma, from the Jacobian at the
 truth) per pixel with 1 % noise, 40 lights at elevations 10-80 degrees, a camera at the zenith,
@@ -58,12 +58,17 @@ exposed to 0.9): radius 0.2-10 %, A_v 0.4-16 %, extinction 3.7-14 % with 8 of 40
 also land on a second solution at the noise level; with the near-camera lights, region medians
 of the synthetic capture are within 4 % (``tests/rti/test_rti_fit.py``, docs/rti.md).
 
-**Scale.** The overall scale of the gains is not fitted: it is a calibration (the mean of
-``initial_gains``, default 1, e.g. from a white reference); only the gains relative to it are.
+**Scale.** The overall scale of the gains, the exposure, is fitted when not given (the plan's
+``exposure scan``, :mod:`mitsuba_powder.rti.exposure`: the powder's angular shape depends on
+its albedo, so a bright powder determines it), or given (``exposure``, or ``initial_gains``,
+the irradiances themselves, e.g. from a reference card: :mod:`mitsuba_powder.rti.reference`).
+Which properties are free per pixel is chosen by cross-validation over held-out lights when
+``free`` is not given (:mod:`mitsuba_powder.rti.selection`).
 
 **Where it runs.** :func:`fit_maps` checks its options once
 (:func:`~mitsuba_powder.rti.options.fit_options`), makes the fit's plan and runs it
-(:mod:`mitsuba_powder.rti.plan`: distance scan, gain subsample, blocks); each stage fits its
+(:mod:`mitsuba_powder.rti.plan`: distance scan, exposure scan, free choice, gain subsample,
+blocks); each stage fits its
 pixels with :func:`mitsuba_powder.rti.pixelfit.fit_pixels` and a per-pixel solver of
 :data:`~mitsuba_powder.rti.solvers.SOLVERS`.
 """
@@ -101,9 +106,10 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
         progress: called with a line of text after each stage.
         options: the other options of the fit, checked by
             :func:`~mitsuba_powder.rti.options.fit_options` (meanings, ranges and defaults:
-            :class:`~mitsuba_powder.rti.options.FitOptions`): ``gains`` (``fit``: per-light
-            gains shared by all pixels, their mean held at the initial gains'; ``fixed``:
-            the initial gains held), ``initial_gains`` ((K,), default 1), ``gain_trend`` (how
+            :class:`~mitsuba_powder.rti.options.FitOptions`): ``gains`` (``fixed``, default:
+            the initial gains held, times the exposure; ``fit``: per-light gains shared by
+            all pixels, their mean held at the exposure), ``exposure`` (a number, ``"fit"``,
+            or None: fitted unless ``initial_gains`` are given), ``initial_gains`` ((K,), default 1), ``gain_trend`` (how
             fitted gains extend to lights not fitted, a
             :class:`~mitsuba_powder.rti.gains.GainTrend`; default none: gain 1),
             ``gain_subsample`` (pixels the gains are fitted on first, then held; default

@@ -274,6 +274,7 @@ def _fit_info(result: MapsResult, settings: dict, capture: Capture | None,
         "settings": settings,
         "variant": result.variant,
         "gains": [float(g) for g in result.gains],
+        "exposure": float(result.exposure),
         "lights": light_names,
         "capture": None if capture is None else {
             "encoding": capture.encoding, "bit_depth": capture.bit_depth,
@@ -338,6 +339,7 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
         light_distance=distance_from_json((info.get("light_rig") or {}).get("distance")),
         gain_model=(GainModel.from_dict(info["gain_model"]) if info.get("gain_model")
                     else None),
+        exposure=float(info.get("exposure", 1.0)),
     )
     return result, info
 

@@ -33,15 +33,15 @@ from .properties import (
 )
 from .solvers import SOLVERS
 
-__all__ = ["DEFAULTS", "FitOptions", "RENAMED", "check_free", "fit_options"]
+__all__ = ["DEFAULTS", "FitOptions", "RENAMED", "check_exposure", "check_free", "fit_options"]
 
 #: Every option of a fit and its default (:func:`fit_options`)
 DEFAULTS: dict[str, object] = {
-    "free": None, "fixed": None, "gains": "fit", "initial_gains": None, "gain_trend": None,
+    "free": None, "fixed": None, "gains": "fixed", "initial_gains": None, "gain_trend": None,
     "gain_subsample": GAIN_PIXELS, "seed": 0, "light_distance": math.inf,
     "max_iterations": 30, "rounds": 3, "saturation": 0.99, "shadow_ratio": 0.5,
     "shadow_floor": 0.03, "solver": "drjit", "variant": VARIANT, "max_lanes": MAX_LANES,
-    "memory_gb": None,
+    "memory_gb": None, "exposure": None,
 }
 
 #: Options renamed (old name -> new name): the old names work for one release, with a
@@ -81,6 +81,10 @@ class FitOptions:
             >= 1; lowered to the memory budget (:attr:`lanes`).
         memory_gb: working memory of the fit besides the images, GiB, > 0 (pixels are fitted
             in blocks that fit in it).
+        exposure: one global scale of the gains (the lights' irradiance is ``exposure x``
+            the initial gains): a number > 0 (given, e.g. from a reference target), ``"fit"``
+            (the plan's ``exposure scan``, :mod:`mitsuba_powder.rti.exposure`) or None (fitted
+            when no initial gains are given, else 1: the initial gains are the irradiances).
         names: how messages name the options (e.g. ``{"memory_gb": "--memory-gb"}``).
         given: the options as the caller gave them (before defaults), for the records.
     """
@@ -98,6 +102,7 @@ class FitOptions:
     variant: str
     max_lanes: int
     memory_gb: float
+    exposure: float | str | None = None
     names: dict = field(default_factory=dict)
     given: dict = field(default_factory=dict)
 
@@ -108,6 +113,17 @@ class FitOptions:
     def replace(self, **changes) -> FitOptions:
         """These options with ``changes`` (values already checked, e.g. held gains)."""
         return replace(self, **changes)
+
+    @property
+    def fits_exposure(self) -> bool:
+        """Whether the fit finds the exposure (``"fit"``, or None without initial gains)."""
+        return self.exposure == "fit" or (self.exposure is None and self.gains.initial is None)
+
+    @property
+    def chooses_free(self) -> bool:
+        """Whether the fit chooses its free set by cross-validation (``free`` not given and
+        the albedo free: :mod:`mitsuba_powder.rti.selection`)."""
+        return self.given.get("free") is None and "albedo" in self.free
 
     @property
     def lanes(self) -> int:
@@ -143,13 +159,15 @@ def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
 
     Args:
         names: how messages name the options (default: their names here).
-        given: ``free``, ``fixed``, ``gains`` (``fit`` or ``fixed``), ``initial_gains`` ((K,)
+        given: ``free``, ``fixed``, ``gains`` (``fixed``, the default: the initial gains held;
+            ``fit``: fitted with the maps), ``initial_gains`` ((K,)
             start or held values, > 0), ``gain_trend`` (a
             :class:`~mitsuba_powder.rti.gains.GainTrend`), ``gain_subsample`` (pixels the gains
             are fitted on, >= 1, or None: every pixel), ``seed`` (of that subsample, >= 0),
             ``light_distance``, ``max_iterations``, ``rounds``, ``saturation``,
             ``shadow_ratio``, ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``,
-            ``memory_gb`` (None: :func:`~mitsuba_powder.rti.blocks.default_memory_gb`).
+            ``memory_gb`` (None: :func:`~mitsuba_powder.rti.blocks.default_memory_gb`),
+            ``exposure`` (a number > 0, ``"fit"`` or None).
 
     Raises:
         ValueError: an unknown option or a value out of its range (named as ``names`` says).
@@ -185,7 +203,16 @@ def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
                                  "[]"),
         solver=o["solver"], variant=variant,
         max_lanes=check_count(name("max_lanes"), o["max_lanes"], 1),
-        memory_gb=check_memory(o["memory_gb"], name("memory_gb")), names=names, given=given)
+        memory_gb=check_memory(o["memory_gb"], name("memory_gb")),
+        exposure=check_exposure(o["exposure"], name("exposure")), names=names, given=given)
+
+
+def check_exposure(value, name: str = "exposure") -> float | str | None:
+    """An exposure option: None, ``"fit"`` or a number > 0 (finite)."""
+    if value is None or value == "fit":
+        return value
+    return check_range(name, value, 0.0, math.inf, "()",
+                       note="(the lights' irradiance scale), or 'fit'")
 
 
 def _renamed(given: dict, names: dict) -> dict:

@@ -27,7 +27,19 @@ from .result import MapsResult
 from .solvers import SOLVERS
 from .starts import PixelStarts
 
-__all__ = ["Log", "fit_in_blocks", "fit_pixels", "max_correlation_length"]
+__all__ = ["CHI2_STEP", "Log", "fit_in_blocks", "fit_pixels", "max_correlation_length",
+           "stop_tolerance"]
+
+#: The stopping rule of the per-pixel Levenberg-Marquardt: a pixel stops when a step changes
+#: its chi-square (its cost over the residual variance, estimated by the cost over its
+#: observations) by less than this: a relative decrease under ``CHI2_STEP / (3 K)``
+CHI2_STEP = 0.01
+
+
+def stop_tolerance(lights: int) -> float:
+    """The relative decrease of a pixel's cost under which its fit stops (:data:`CHI2_STEP`):
+    ``CHI2_STEP / (3 K)`` for K lights (3 channels each)."""
+    return CHI2_STEP / (3 * max(int(lights), 1))
 
 
 def max_correlation_length(directions: np.ndarray, wavelength: float = 464.3) -> float:
@@ -164,6 +176,8 @@ class _State:
     held: np.ndarray | None = None         # lights whose gains were held in the last step
     iterations: int = 0
     evaluations: int = 0
+    at_cap: int = 0         # pixels the iteration cap stopped in the last round
+    capped_rounds: int = 0  # rounds in which the cap stopped some pixels
 
 
 def _fit_chunk(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
@@ -174,9 +188,11 @@ def _fit_chunk(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
     system."""
     solver = SOLVERS[data.options.solver](ev, data.pixel_data(s, state.weights, state.gains,
                                                               layout))
-    fitted = solver.solve(y_start[s], data.options.max_iterations)
+    fitted = solver.solve(y_start[s], data.options.max_iterations,
+                          stop_tolerance(data.obs.shape[1]))
     state.y[s, :-1] = fitted.y
     state.iterations = max(state.iterations, fitted.iterations)
+    state.at_cap += fitted.at_cap
     state.value[s], part = solver.model(fitted.y, with_gains)
     state.evaluations += solver.evaluations
     return part
@@ -208,14 +224,20 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
         # every round starts from the Lambertian start under the current gains: a warm start
         # would keep pixels in the surface-lobe basin the previous gains led them to
         y_start = starts(state.gains, state.weights)[0] if r > 0 else state.y
+        state.iterations, state.at_cap = 0, 0
         _round(ev, data, layout, state, y_start, with_gains, log)
         model = state.value * data.light_gains(state.gains)
         if not last:
             state.weights = data.flags(model)
         rms = np.sqrt(np.sum(state.weights[:, :, None] * (model - data.obs) ** 2)
                       / max(3 * np.sum(state.weights), 1))
-        log(f"{name}: Levenberg-Marquardt ({len(state.chunks)} chunk(s)), "
-            f"RMS residual {rms:.5g}, {int(np.sum(state.weights == 0))} observations left out")
+        cap = data.options.max_iterations
+        log(f"{name}: Levenberg-Marquardt ({len(state.chunks)} chunk(s)), {state.iterations} "
+            f"iterations" + (f" (the cap: {state.at_cap} pixels stopped by it)"
+                             if state.at_cap else "")
+            + f", RMS residual {rms:.5g}, {int(np.sum(state.weights == 0))} observations left "
+            "out")
+        state.capped_rounds += int(state.at_cap > 0 and state.iterations >= cap)
     return state
 
 
@@ -303,6 +325,8 @@ def _fit_settings(data: FitData, state: _State, specs: Mapping[str, ParamSpec], 
         "shadow_floor": o.shadow_floor, "max_lanes": o.lanes, "chunks": len(state.chunks),
         "solver": o.solver, "correlation_length_max_um": specs["correlation_length"].upper,
         "iterations_last_round": state.iterations, "evaluations": state.evaluations,
+        "pixels_at_cap_last_round": state.at_cap, "rounds_at_cap": state.capped_rounds,
+        "stop_tolerance": stop_tolerance(data.obs.shape[1]),
         "underdetermined_pixels": underdetermined, "seconds": time.perf_counter() - t0,
         "stages": log.stages,
         "fixed": {n: v for n, v in o.fixed.items() if np.ndim(v) == 0 or isinstance(v, str)},

@@ -51,8 +51,10 @@ class PixelData:
 @dataclass
 class SolverFit:
     """What a solver's ``solve`` gives: the fitted rows ``y`` (P, n) (the layout's columns),
-    each pixel's cost (P,) and the iterations of the longest pixel."""
+    each pixel's cost (P,), the iterations of the longest pixel and the pixels still
+    iterating when the iteration cap stopped them."""
 
     y: np.ndarray
     cost: np.ndarray
     iterations: int
+    at_cap: int = 0

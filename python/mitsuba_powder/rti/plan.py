@@ -9,10 +9,17 @@ for, in order; :func:`run_plan` runs them, each handing the next what it found
 1. ``distance scan`` (``light_distance="fit"``): one light distance for the whole dome, a
    Lambertian scan of its inverse on a subsample of pixels spread over the mask, then a polish
    with the powder fit of that subsample (:mod:`mitsuba_powder.rti.distance`);
-2. ``gain subsample`` (gains fitted, more masked pixels than the gain policy's subsample):
+2. ``exposure scan`` (the exposure not given, :attr:`FitOptions.fits_exposure
+   <mitsuba_powder.rti.options.FitOptions.fits_exposure>`): one global scale of the gains, a
+   scan of its logarithm with a quick powder fit of a subsample of pixels spread over the
+   mask, then a polish with the full fit of that subsample (:mod:`mitsuba_powder.rti.exposure`);
+3. ``free choice`` (``free`` not given): which properties are free per pixel, the albedo
+   alone or with the surface lobe, by cross-validation over held-out lights on a subsample of
+   pixels (:mod:`mitsuba_powder.rti.selection`);
+4. ``gain subsample`` (gains fitted, more masked pixels than the gain policy's subsample):
    the maps and gains of a random subsample of the masked pixels, whose gains are then held
    for every pixel (:mod:`mitsuba_powder.rti.gains`);
-3. ``blocks``: every masked pixel, in blocks within the memory budget (one block while the
+5. ``blocks``: every masked pixel, in blocks within the memory budget (one block while the
    gains are still fitted: they couple every pixel) (:mod:`mitsuba_powder.rti.blocks`).
 
 Every stage fits its pixels the same way (:func:`~mitsuba_powder.rti.pixelfit.fit_in_blocks`:
@@ -33,11 +40,26 @@ import numpy as np
 
 from ..variants import use_variant
 from .blocks import peak_memory_mib
-from .distance import polish_inverse_distance, scan_inverse_distance, subsample_mask
+from .distance import (
+    polish_bracket,
+    polish_inverse_distance,
+    scan_inverse_distance,
+    subsample_mask,
+)
+from .exposure import (
+    POLISH_EVALUATIONS,
+    POLISH_WIDTH,
+    SCAN_LOG2,
+    determined,
+    exposure_anchor,
+    exposure_grid,
+    exposure_uncertainty,
+)
 from .inputs import FitInputs, check_inputs
 from .options import FitOptions
 from .pixelfit import Log, fit_in_blocks
 from .result import MapsResult
+from .selection import choose_free, free_candidates
 
 __all__ = ["FitPlan", "FitState", "Stage", "check_finite", "fit_distance", "make_plan",
            "run_fit", "run_plan"]
@@ -54,6 +76,8 @@ class FitState:
     options: FitOptions
     gains: np.ndarray
     scan: dict | None = None
+    exposure: dict | None = None
+    free_choice: dict | None = None
     held: MapsResult | None = None
     result: MapsResult | None = None
 
@@ -91,6 +115,10 @@ def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
     stages = []
     if isinstance(options.light_distance, str):  # "fit"
         stages.append(Stage("distance scan", subsample_mask(inputs.mask), scan_distance))
+    if options.fits_exposure:
+        stages.append(Stage("exposure scan", subsample_mask(inputs.mask), scan_exposure))
+    if options.chooses_free and len(free_candidates(options)) > 1:
+        stages.append(Stage("free choice", subsample_mask(inputs.mask), choose_free_set))
     policy = options.gains
     if policy.subsampled(int(inputs.mask.sum())):
         sub = np.zeros(inputs.mask.size, dtype=bool)
@@ -117,7 +145,12 @@ def run_stages(plan: FitPlan, log: Log, names: tuple[str, ...] | None = None) ->
     """The state after the stages of ``plan`` (those of ``names`` only, if given), in the
     options' variant."""
     inputs = plan.inputs
-    state = FitState(inputs.options.light_distance, inputs.options, inputs.gains)
+    o = inputs.options
+    exposure = 1.0 if o.fits_exposure or o.exposure is None else float(o.exposure)
+    source = "initial gains" if o.exposure is None and not o.fits_exposure else "given"
+    state = FitState(o.light_distance, o, exposure * inputs.gains,
+                     exposure={"value": exposure, "sigma": 0.0, "source": source,
+                               "determined": True})
     with use_variant(inputs.options.variant):
         for stage in plan.stages:
             if names is None or stage.name in names:
@@ -169,6 +202,63 @@ def scan_distance(inputs: FitInputs, stage: Stage, state: FitState, log: Log) ->
     scan = {"inverse_distance": us.tolist(), "cost": costs.tolist(),
             "polish": [{"inverse_distance": a, "cost": b} for a, b in seen]}
     return replace(state, light_distance=r, scan=scan)
+
+
+def scan_exposure(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
+    """Stage ``exposure scan``: x = ln(exposure) scanned with a quick powder fit (one round)
+    of the stage's pixels, polished with the full fit, its uncertainty from the cost's
+    curvature (:mod:`mitsuba_powder.rti.exposure`); the gains are then ``exposure x`` the
+    initial ones."""
+    sub, base, r = stage.pixels, state.gains, state.light_distance
+    held = state.options.replace(gains=state.options.gains.held(base))
+    data = inputs.pixels(sub, base, r, held)
+    anchor = exposure_anchor(data.obs, (~data.saturated).astype(np.float64), data.d, base)
+    del data
+    counts: dict[float, int] = {}
+
+    def cost(x: float, options) -> float:
+        part = fit_in_blocks(inputs, sub, options, base * math.exp(x), r, Log())
+        used = part.used[:, sub]                                   # (K, P)
+        n = 3 * used.sum(axis=0)
+        ssr = np.nansum(part.residual_rms[sub] ** 2 * n)
+        counts[x] = int(n.sum())
+        return float(ssr / max(n.sum(), 1))
+
+    quick = held.replace(rounds=1, max_iterations=min(held.max_iterations, 15))
+    grid = exposure_grid(anchor, SCAN_LOG2)
+    costs = np.array([cost(x, quick) for x in grid])
+    log(f"exposure: scan of {len(grid)} values {math.exp(grid[0]):.4g}-{math.exp(grid[-1]):.4g}"
+        f" on {int(sub.sum())} pixels, best {math.exp(grid[int(np.argmin(costs))]):.4g}")
+    x, seen = polish_bracket(lambda x: cost(x, held), grid, costs, POLISH_EVALUATIONS,
+                             POLISH_WIDTH)
+    x0, sigma_x = exposure_uncertainty(seen, counts[min(seen, key=lambda p: p[1])[0]])
+    if x0 != x:
+        seen.append((x0, cost(x0, held)))
+        x = min(seen, key=lambda p: p[1])[0]
+    ok = determined(x, sigma_x, grid, costs)
+    best = math.exp(x)
+    sigma = best * sigma_x if math.isfinite(sigma_x) else math.inf
+    e = best if ok else 1.0
+    log(f"exposure: polished with the powder fit ({len(seen)} fits), {best:.4g} +- "
+        f"{sigma:.2g}" + ("" if ok else "; the capture does NOT determine the exposure "
+                          "(its cost has no minimum in the scan, or a flat one): exposure 1 "
+                          "is kept (the images' scale), and the albedo and the lobe's "
+                          "amplitude are relative to it; give --exposure or --reference to "
+                          "calibrate"))
+    record = {"value": e, "sigma": sigma if math.isfinite(sigma) and ok else None,
+              "source": "fitted", "determined": ok, "best": best, "anchor": anchor,
+              "scan": {"exposure": np.exp(grid).tolist(), "cost": costs.tolist(),
+                       "polish": [{"exposure": math.exp(a), "cost": b} for a, b in seen]}}
+    return replace(state, gains=base * e, exposure=record)
+
+
+def choose_free_set(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
+    """Stage ``free choice``: the free set cross-validated over held-out lights on the stage's
+    pixels (:func:`~mitsuba_powder.rti.selection.choose_free`) is the next stages'."""
+    choice = choose_free(inputs, stage.pixels, state.options, state.gains,
+                         state.light_distance, log)
+    return replace(state, options=state.options.replace(free=choice.chosen),
+                   free_choice=choice.to_dict())
 
 
 def fit_gain_subsample(inputs: FitInputs, stage: Stage, state: FitState, log: Log
@@ -226,7 +316,9 @@ def _finish(state: FitState, log: Log, t0: float) -> MapsResult:
         memory_gb=state.options.memory_gb, peak_memory_mib=peak_memory_mib(),
         light_distance_source=("fitted" if state.scan is not None else "distant"
                                if np.all(np.isinf(r)) else "given"),
-        light_distance_scan=state.scan)
+        light_distance_scan=state.scan, exposure=state.exposure,
+        free_choice=state.free_choice)
+    result.exposure = float(state.exposure["value"])
     if held is not None:
         result.fit_settings.update(gains="fit", gain_pixels=held.fit_settings["gain_pixels"],
                                    gain_stages=held.fit_settings["stages"])

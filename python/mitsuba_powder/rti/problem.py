@@ -128,9 +128,11 @@ class NumpySolver:
         Jacobian)."""
         return self.problem.evaluations
 
-    def solve(self, y_start: np.ndarray, max_iterations: int) -> SolverFit:
+    def solve(self, y_start: np.ndarray, max_iterations: int, ftol: float = 1e-7
+              ) -> SolverFit:
         """Levenberg-Marquardt from ``y_start`` (P, n + 1; the last column, the pixel's index,
-        is held) with no hopeless test (pixels are not competing starts)."""
+        is held) with no hopeless test (pixels are not competing starts); a pixel stops when
+        a step lowers its cost by less than ``ftol`` (relative)."""
         y = np.array(y_start, dtype=np.float64)
         y[:, -1] = np.arange(len(y))
         hold = np.zeros(y.shape[1], dtype=bool)
@@ -139,8 +141,8 @@ class NumpySolver:
         # stops nothing: not a warning
         with np.errstate(invalid="ignore"):
             fitted = batch_levenberg_marquardt(self.problem, y, max_iterations, hold=hold,
-                                               hopeless=math.inf)
-        return SolverFit(fitted.y[:, :-1], fitted.cost, fitted.iterations)
+                                               ftol=ftol, hopeless=math.inf)
+        return SolverFit(fitted.y[:, :-1], fitted.cost, fitted.iterations, fitted.unfinished)
 
     def model(self, rows: np.ndarray, gain_terms: bool = False
               ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:

@@ -36,7 +36,9 @@ class MapsResult:
         light_distance: the lights' distance from the image's centre in image widths (a
             number or (K,), given or fitted; ``inf``: distant lights): relit images use it.
         gain_model: the gains as a smooth function of the light direction (with the fitted
-            lights' residuals): the gain of a light when none is given; None: 1.
+            lights' residuals): the gain of a light when none is given; None: the exposure.
+        exposure: the lights' irradiance scale (given or fitted): the gain of a light when
+            none is given and there is no gain model.
     """
 
     normals: np.ndarray
@@ -52,6 +54,7 @@ class MapsResult:
     fit_settings: dict = field(default_factory=dict)
     light_distance: float | np.ndarray = math.inf
     gain_model: GainModel | None = None
+    exposure: float = 1.0
 
     @property
     def n_parameters(self) -> int:
@@ -80,9 +83,9 @@ class MapsResult:
 
     def light_gains(self, directions: np.ndarray) -> np.ndarray:
         """(K',) gains of lights at ``directions``: the gain model's (a fitted light's own
-        gain, the smooth trend for another), or 1 without a gain model."""
+        gain, the smooth trend for another), or the exposure without a gain model."""
         if self.gain_model is None:
-            return np.ones(len(directions))
+            return np.full(len(directions), float(self.exposure))
         return self.gain_model.evaluate(directions)
 
 
@@ -96,7 +99,7 @@ def relight(result: MapsResult, directions: np.ndarray, gains: np.ndarray | None
         result: a :func:`mitsuba_powder.rti.fit_maps` result.
         directions: (K', 3) vectors towards the lights.
         gains: (K',) light irradiances; default: :meth:`MapsResult.light_gains` (the fit's
-            gain model at these directions, 1 without one).
+            gain model at these directions, the exposure without one).
         light_distance: the new lights' distance in image widths (a number or (K',));
             default: the fit's when it is one number (``inf`` for per-light distances).
 

@@ -24,7 +24,8 @@ from .trend import GainTrend
 __all__ = ["GAIN_MODES", "GAIN_PIXELS", "GainPolicy", "gain_policy", "gain_sample"]
 
 #: How the gains are found: ``fit`` (fitted with the maps, their mean held at the initial
-#: gains' mean) or ``fixed`` (the initial gains held)
+#: gains' mean) or ``fixed`` (the initial gains held: the default, docs/rti.md "Gains held
+#: at 1": fitted gains absorb cast shadows and the model's error at grazing light)
 GAIN_MODES = ("fit", "fixed")
 
 #: Pixels of the subsample the per-light gains are fitted on (then held for every pixel)
@@ -46,7 +47,7 @@ class GainPolicy:
         seed: seed of the subsample's draw, >= 0.
     """
 
-    mode: str = "fit"
+    mode: str = "fixed"
     initial: np.ndarray | None = None
     trend: GainTrend = field(default_factory=GainTrend)
     subsample: int | None = GAIN_PIXELS
@@ -76,7 +77,7 @@ class GainPolicy:
         return replace(self, mode="fixed", initial=np.asarray(gains))
 
 
-def gain_policy(mode: str = "fit", initial: np.ndarray | None = None,
+def gain_policy(mode: str = "fixed", initial: np.ndarray | None = None,
                 trend: GainTrend | None = None, subsample: int | None = GAIN_PIXELS,
                 seed: int = 0, name: Callable[[str], str] = str) -> GainPolicy:
     """A checked :class:`GainPolicy` (the initial gains are checked against the capture).

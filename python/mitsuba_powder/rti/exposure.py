@@ -1,0 +1,108 @@
+"""The capture's exposure fitted to an RTI capture: a scan of its logarithm with the powder fit
+of a pixel subsample, then a polish, as the light distance is (:mod:`.distance`).
+
+The exposure ``e`` is one global scale of the lights' irradiances (the gains are ``e g_k``,
+``g_k`` the relative gains: 1 by default). A Lambertian surface cannot tell it from its
+reflectance (``e rho`` only), but the powder's angular shape changes with its albedo
+(multiple scattering: ``L1 ~ rho``, ``L2 ~ rho^2``, ...), so that a wrong exposure leaves the
+albedo of an uncalibrated capture off by the ratio (and the surface lobe with it) while the fit
+still looks good. What pins ``e`` is that shape: weakly where the albedo is low (single
+scattering dominates: the shape no longer changes), well where it is high.
+
+1. **scan** (:func:`exposure_grid`): ``x = ln e`` on a uniform grid, anchored at the exposure
+   that gives the subsample's bright pixels (95th percentile of the Lambertian reflectance's
+   largest channel) a Lambertian reflectance of 1 (a powder of albedo 1 reflects less than a
+   white Lambertian surface, so the truth lies above the anchor); the cost at each point is the
+   mean squared residual of a quick powder fit of the subsample (one round).
+2. **polish** (:func:`~mitsuba_powder.rti.distance.polish_bracket`): a bounded scalar
+   minimisation of the full powder fit's cost over :data:`POLISH_WIDTH` grid points either
+   side of the scan's best point, at most :data:`POLISH_EVALUATIONS` fits.
+3. **uncertainty** (:func:`exposure_uncertainty`): the profile likelihood's curvature (every
+   pixel's variables refitted at each ``e``): a parabola in ``x`` through the evaluations near
+   the minimum, ``chi^2(x) = N cost(x) / cost_min`` (the residual variance as the noise), so
+   ``sigma_x = sqrt(cost_min / (N a))`` (``a`` the parabola's curvature, ``N`` the
+   observations used); ``sigma_e = e sigma_x``.
+
+The capture **does not determine** its exposure (:func:`determined`) when the best point is at
+an end of the scan, the parabola does not curve upwards or has its vertex outside the
+evaluations, or ``sigma_e / e`` exceeds
+:data:`UNDETERMINED`; the fit then says so and keeps the exposure at 1 (the images' own scale,
+what the fit assumed before it fitted the exposure; the best of the scan is recorded): a best
+at the scan's end is no estimate (on RealRTI's clay reliefs the cost falls on towards albedo 0,
+where the powder's shape relit grazing light worse). Give the exposure or a reference target to
+calibrate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .starts import lambertian_start
+
+__all__ = ["POLISH_EVALUATIONS", "POLISH_WIDTH", "SCAN_LOG2", "UNDETERMINED", "determined",
+           "exposure_anchor", "exposure_grid", "exposure_uncertainty"]
+
+#: The scan's grid of ``log2(e / anchor)``: from half the anchor (the bright pixels would be
+#: brighter than white) to 6x it (the albedo of a powder that dark changes its shape little)
+SCAN_LOG2 = np.linspace(-0.5, 2.5, 10)
+#: Grid points either side of the scan's best that the polish brackets (the quick fit of the
+#: scan can put its best a grid point off the full fit's)
+POLISH_WIDTH = 2
+#: Most powder fits of the polish
+POLISH_EVALUATIONS = 8
+#: Relative 1-sigma of the exposure above which the capture does not determine it
+UNDETERMINED = 0.1
+
+
+def exposure_anchor(obs: np.ndarray, wt: np.ndarray, directions: np.ndarray,
+                    gains: np.ndarray, percentile: float = 95.0) -> float:
+    """The exposure at which the bright pixels (``percentile`` of the largest channel of the
+    Lambertian reflectance, photometric stereo with ``gains``) have reflectance 1.
+
+    Args:
+        obs: (P, K, 3) observations; wt: (P, K) weights; directions: (K, 3); gains: (K,).
+    """
+    images = obs.transpose(1, 0, 2)[:, :, None, :]
+    _, refl = lambertian_start(images, directions, wt.T[:, :, None], gains)
+    top = float(np.nanpercentile(np.max(refl[:, 0], axis=1), percentile))
+    return top if math.isfinite(top) and top > 0 else 1.0
+
+
+def exposure_grid(anchor: float, grid: np.ndarray = SCAN_LOG2) -> np.ndarray:
+    """``x = ln e`` of the scan: ``ln anchor + grid ln 2``."""
+    return math.log(anchor) + np.asarray(grid, dtype=np.float64) * math.log(2.0)
+
+
+def exposure_uncertainty(points: list[tuple[float, float]], observations: int
+                         ) -> tuple[float, float]:
+    """(x*, sigma_x) from the (x = ln e, cost) evaluations (module docstring, step 3): the
+    parabola through the (at least 3) evaluations nearest the best in x; sigma_x is inf when
+    it does not curve upwards or there are fewer than 3 distinct points."""
+    pts = sorted(set(points))
+    best_x, best_c = min(pts, key=lambda p: p[1])
+    near = sorted(pts, key=lambda p: abs(p[0] - best_x))[:5]
+    xs = np.array([p[0] for p in near])
+    cs = np.array([p[1] for p in near])
+    if len(np.unique(np.round(xs, 12))) < 3 or best_c <= 0:
+        return best_x, math.inf
+    a, b, _ = np.polyfit(xs - best_x, cs, 2)
+    if not a > 0:
+        return best_x, math.inf
+    x0 = best_x - b / (2 * a)
+    if not min(xs) <= x0 <= max(xs):  # the vertex outside the points: no minimum seen
+        return best_x, math.inf
+    return float(x0), float(math.sqrt(best_c / (max(observations, 1) * a)))
+
+
+def determined(x: float, sigma_x: float, grid: np.ndarray, scan: np.ndarray | None = None
+               ) -> bool:
+    """Whether the capture determines its exposure (module docstring): the scan's best
+    (``scan``: its costs on ``grid``) not at an end of the grid, ``x`` inside it, and a
+    relative 1-sigma within :data:`UNDETERMINED`."""
+    step = float(grid[1] - grid[0]) if len(grid) > 1 else 0.0
+    inside = grid[0] + 0.5 * step < x < grid[-1] - 0.5 * step
+    if scan is not None and int(np.argmin(scan)) in (0, len(grid) - 1):
+        return False
+    return bool(inside and math.isfinite(sigma_x) and math.expm1(sigma_x) <= UNDETERMINED)

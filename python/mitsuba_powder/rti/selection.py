@@ -1,0 +1,122 @@
+"""Which properties are free per pixel, chosen per capture by cross-validation over held-out
+lights on a subsample of pixels (the plan's ``free choice``).
+
+A property free per pixel that the capture does not need (the surface lobe of a matte clay)
+fits the noise and the model's error at a few lights and relights the others worse. The
+candidates (:func:`free_candidates`) run from the albedo alone to the default free set
+(:data:`~mitsuba_powder.rti.properties.MAP_DEFAULT_FREE`); each is fitted to the subsample
+with one fold of the lights held out (the lights ``k % FOLDS == f``), and the held-out lights
+are predicted at the fitted maps (under the fit's gains and light distance). The score is the
+RMS of the held-out residuals over the folds (observations not saturated); the simplest
+candidate whose score is within :data:`TOLERANCE` of the best is chosen (a property earns its
+place by relighting better, not by fitting the lights it saw). ``free`` given (``--free``)
+skips the choice.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .forward import PixelEvaluator, slopes_of_normals
+from .inputs import FitData, FitInputs
+from .options import FitOptions
+from .pixelfit import Log, fit_pixels
+from .properties import MAP_DEFAULT_FREE
+
+__all__ = ["FOLDS", "TOLERANCE", "FreeChoice", "choose_free", "free_candidates"]
+
+#: Folds of the lights (light k is held out in fold ``k % FOLDS``)
+FOLDS = 5
+#: A simpler candidate is chosen when its cross-validated RMS is within this fraction of the
+#: best one's
+TOLERANCE = 0.01
+#: The surface lobe's properties, the candidates' optional part
+LOBE = ("amplitude_surface", "correlation_length")
+
+
+@dataclass
+class FreeChoice:
+    """The choice: each candidate's free set and cross-validated RMS (linear units), the one
+    chosen, the folds and the pixels."""
+
+    candidates: list[tuple[str, ...]]
+    rms: list[float]
+    chosen: tuple[str, ...]
+    folds: int
+    pixels: int
+
+    def to_dict(self) -> dict:
+        return {"candidates": [{"free": list(c), "cv_rms": r}
+                               for c, r in zip(self.candidates, self.rms)],
+                "chosen": list(self.chosen), "folds": self.folds, "pixels": self.pixels,
+                "tolerance": TOLERANCE}
+
+
+def free_candidates(options: FitOptions) -> list[tuple[str, ...]]:
+    """The free sets the choice compares, simplest first: the default free set without the
+    surface lobe, then the default (properties held in ``options.fixed`` left out); one
+    candidate (no choice) when the lobe is held."""
+    full = tuple(n for n in MAP_DEFAULT_FREE if n not in options.fixed)
+    simple = tuple(n for n in full if n not in LOBE)
+    return [simple, full] if simple != full else [full]
+
+
+def choose_free(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains: np.ndarray,
+                light_distance, log: Log, folds: int = FOLDS) -> FreeChoice:
+    """Cross-validate :func:`free_candidates` on the pixels ``sub`` (bool (H, W)) under
+    ``gains`` and lights at ``light_distance`` (module docstring)."""
+    candidates = free_candidates(options)
+    k = len(inputs.d)
+    folds = max(2, min(int(folds), k))
+    medians = {n: float(np.median(m[sub])) for n, m in inputs.maps.items()}
+    scores = []
+    for free in candidates:
+        opts = options.replace(free=free)
+        data = inputs.pixels(sub, gains, light_distance, opts)
+        ev = PixelEvaluator(opts.others + list(data.fixed_maps), opts.settings, opts.variant)
+        ssr, n = 0.0, 0
+        for f in range(folds):
+            held = np.arange(k) % folds == f
+            if not held.any() or held.all():
+                continue
+            part = fit_pixels(ev, _lights(data, ~held), Log(), medians)
+            pred = _predict(ev, part, data, held)
+            wt = ~np.any(data.obs[:, held] >= opts.saturation, axis=2)     # (P, K_held)
+            r = (pred - data.obs[:, held]) * wt[:, :, None]
+            good = np.isfinite(r).all(axis=(1, 2))
+            ssr += float(np.sum(r[good] ** 2))
+            n += int(3 * np.sum(wt[good]))
+        scores.append(float(np.sqrt(ssr / max(n, 1))))
+    best = min(scores)
+    chosen = next(c for c, s in zip(candidates, scores) if s <= best * (1 + TOLERANCE))
+    log("free set: cross-validated over " + f"{folds} folds of the lights on "
+        f"{int(sub.sum())} pixels: " + ", ".join(
+            f"normal + {'+'.join(c)} {s:.4g}" for c, s in zip(candidates, scores))
+        + f" (held-out RMS); chosen normal + {', '.join(chosen)}")
+    return FreeChoice(candidates, scores, chosen, folds, int(sub.sum()))
+
+
+def _lights(data: FitData, keep: np.ndarray) -> FitData:
+    """``data`` with the lights ``keep`` (bool (K,)) only."""
+    field = None if data.field is None else (data.field[0][:, keep], data.field[1][:, keep])
+    return FitData(obs=np.ascontiguousarray(data.obs[:, keep]), d=data.d[keep],
+                   mask=data.mask, gains=data.gains[keep], fixed_maps=data.fixed_maps,
+                   fixed_albedo=data.fixed_albedo, grain=data.grain, options=data.options,
+                   field=field, light_distance=data.light_distance)
+
+
+def _predict(ev: PixelEvaluator, part, data: FitData, held: np.ndarray) -> np.ndarray:
+    """The fitted pixels of ``part`` (a fit of ``data``'s pixels) under the lights ``held``:
+    (P, K_held, 3), the gains and irradiance factors applied."""
+    sel = data.mask
+    slopes = slopes_of_normals(part.normals[sel].astype(np.float64))
+    albedo = part.albedo[sel].astype(np.float64)
+    values = {n: part.maps[n][sel].astype(np.float64) for n in ev.varying}
+    lights = data.d[held] if data.field is None else data.field[0][:, held]
+    value, _ = ev(slopes, albedo, values, lights)
+    scale = data.gains[held][None, :]
+    if data.field is not None:
+        scale = scale * data.field[1][:, held]
+    return value * np.broadcast_to(scale, value.shape[:2])[:, :, None]
