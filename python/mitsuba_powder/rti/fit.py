@@ -109,8 +109,8 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
             :class:`~mitsuba_powder.rti.options.FitOptions`): ``gains`` (``fixed``, default:
             the initial gains held, times the exposure; ``fit``: per-light gains shared by
             all pixels, their mean held at the exposure), ``exposure`` (a number, ``"fit"``,
-            or None: fitted unless ``initial_gains`` are given), ``initial_gains`` ((K,), default 1), ``gain_trend`` (how
-            fitted gains extend to lights not fitted, a
+            or None: fitted unless ``initial_gains`` are given), ``initial_gains`` ((K,),
+            default 1), ``gain_trend`` (how fitted gains extend to lights not fitted, a
             :class:`~mitsuba_powder.rti.gains.GainTrend`; default none: gain 1),
             ``gain_subsample`` (pixels the gains are fitted on first, then held; default
             :data:`~mitsuba_powder.rti.gains.GAIN_PIXELS`; None: every pixel), ``seed``,
