@@ -48,6 +48,9 @@ CASES = {
     "gain_spread_mode": (["--gain-spread", "0.1"],
                          lambda c: _fit(c, gain_trend=GainTrend(spread=0.1)),
                          "gain_spread = 0.1 needs gain_model = 'smooth' (it is 'none')", None),
+    "exposure": (["--exposure", "0"], lambda c: _fit(c, exposure=0),
+                 "exposure = 0 is out of range; valid range is (0, inf) (the lights' "
+                 "irradiance scale), or 'fit'", None),
     "memory": (["--memory-gb", "0"], lambda c: _fit(c, memory_gb=0),
                "memory_gb = 0 is out of range; valid range is [0.015625, inf) GiB", "--memory-gb"),
     "memory_text": (["--memory-gb", "lots"], lambda c: _fit(c, memory_gb="lots"),
@@ -185,14 +188,15 @@ def test_a_fit_checks_its_options_and_capture_once_whatever_its_stages(monkeypat
     monkeypatch.setattr(rf.blocks, "MIN_MEMORY_GB", 1e-4)
     result = fit_module.fit_maps(cap["images"], cap["directions"], fixed=fixed, rounds=1,
                                  max_iterations=3, light_distance="fit", gain_subsample=100,
-                                 memory_gb=0.0005)
+                                 memory_gb=0.0005, gains="fit")
     assert calls == {"options": 1, "inputs": 1, "fit_maps": 0}
     settings = result.fit_settings
     assert settings["light_distance_source"] == "fitted" and settings["gain_pixels"] == 100
     assert settings["blocks"] > 1 and math.isfinite(result.light_distance)
     plan = plan_module.make_plan(cap["images"], cap["directions"], rf.fit_options(
-        fixed=fixed, light_distance="fit", gain_subsample=100))
-    assert [s.name for s in plan.stages] == ["distance scan", "gain subsample", "blocks"]
+        fixed=fixed, light_distance="fit", gain_subsample=100, gains="fit"))
+    assert [s.name for s in plan.stages] == ["distance scan", "exposure scan", "free choice",
+                                             "gain subsample", "blocks"]
     assert np.array_equal(plan.stages[-1].pixels, np.ones((16, 16), bool))
 
 

@@ -56,7 +56,7 @@ def client():
 
 def _tiled(capture_lp, out, client, **kwargs):
     args = {"encoding": "linear", "gain_subsample": GAIN_PIXELS, "client": client,
-            "progress": False, **OPTIONS, **kwargs}
+            "progress": False, "gains": "fit", **OPTIONS, **kwargs}
     return fit_maps_tiled(capture_lp, out, TILE, **args)
 
 
@@ -97,7 +97,7 @@ def test_tiled_fit_equals_the_untiled_fit_under_the_same_gains(capture_lp, clien
     assert not np.allclose(gains, 1.0)
     capture = rti.load_capture(capture_lp, encoding="linear")
     untiled = rti.fit_maps(capture.images, capture.directions, gains="fixed",
-                           initial_gains=gains, **OPTIONS)
+                           initial_gains=gains, free=rti.MAP_DEFAULT_FREE, **OPTIONS)
     tiled = _tiled(capture_lp, tmp_path, client, gains="fixed", initial_gains=gains)
     assert tiled.maps.keys() == untiled.maps.keys() and tiled.free == untiled.free
     for name, value in _fields(untiled).items():
@@ -156,7 +156,7 @@ def test_resume_refuses_tiles_of_other_settings(capture_lp, client, reference, t
     # the same gains, another tile size: the first tile file is refused
     with pytest.raises(ValueError, match="tile_r0000_c0000.npz was written with other"):
         fit_maps_tiled(capture_lp, out, 24, encoding="linear", gain_subsample=GAIN_PIXELS,
-                       client=client, progress=False, resume=True, **OPTIONS)
+                       client=client, progress=False, resume=True, gains="fit", **OPTIONS)
 
 
 def reference_dir(result):

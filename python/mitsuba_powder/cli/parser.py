@@ -285,36 +285,64 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True,
                    help="output folder: <property>.exr, albedo.exr, normal.exr, residual.exr, "
                         "fit.json, scene.xml")
-    p.add_argument("--free", default=None,
-                   help="comma-separated properties fitted per pixel besides the normal "
-                        "(default: albedo, amplitude_surface, correlation_length; "
-                        "docs/rti.md says why)")
     _add_capture_options(p, "fitted")
-    p.add_argument("--gains", default="fit", metavar=GAIN_MODES,
-                   help="per-light gains shared by all pixels: fitted (mean 1) or all 1")
-    _add_set_option(p, "a plugin property held for every pixel (repeatable), e.g. "
-                    "--set extinction=0.5")
-    p.add_argument("--iterations", default=30, metavar="N",
-                   help="Levenberg-Marquardt iterations per round")
-    p.add_argument("--rounds", default=3, metavar="N",
-                   help="alternations of the per-pixel fit with the gains")
-    p.add_argument("--gain-model", default="none", metavar=GAIN_MODEL_MODES,
-                   help="none: a light not fitted has gain 1 (the gains' mean); free: each "
-                        "fitted light keeps its gain, a light not fitted gets the smooth "
-                        "trend of the gains in its direction; smooth: the gains are the trend "
-                        "(with residuals of relative spread --gain-spread)")
-    p.add_argument("--gain-degree", default=2, metavar="D",
-                   help="degree of the gains' trend, a polynomial in sin(elevation) (0-6)")
-    p.add_argument("--gain-spread", default=None, metavar="TAU",
-                   help="smooth gains: relative spread of the lights about the trend (e.g. "
-                        "0.02); default none (the gains are the trend)")
+    _add_fit_options(p)
     _add_tile_options(p)
     p.set_defaults(func=_cmd_fit_maps, out_folder=True)
 
 
+def _add_fit_options(p: argparse.ArgumentParser, model: str = "") -> None:
+    """The per-pixel powder fit's options, shared by fit-maps and compare-maps (``model``:
+    how compare-maps' help introduces them). The values are checked by the fit
+    (mitsuba_powder.rti.options), not here."""
+    p.add_argument("--free", default=None,
+                   help=model + "comma-separated properties fitted per pixel besides the "
+                        "normal (default: chosen per capture by cross-validation over "
+                        "held-out lights: albedo alone or albedo, amplitude_surface, "
+                        "correlation_length; docs/rti.md says why)")
+    p.add_argument("--gains", default="fixed", metavar=GAIN_MODES,
+                   help=model + "per-light gains shared by all pixels: fixed (default: all "
+                        "the exposure, or the --reference card's irradiances) or fit (fitted "
+                        "with the maps, their mean the exposure)")
+    p.add_argument("--exposure", default=None, metavar="E",
+                   help=model + "the lights' irradiance scale (> 0), or 'fit'; default: "
+                        "fitted (a scan and a polish on a subsample), or from --reference")
+    p.add_argument("--reference", default=None, metavar="x0,y0,x1,y1[:REFLECTANCE]",
+                   help=model + "a white or grey card in the frame (pixels x0 <= x < x1, "
+                        "y0 <= y < y1 from the top left; reflectance, default 0.99): each "
+                        "light's irradiance and the exposure; its pixels are not fitted")
+    _add_set_option(p, model + "a plugin property held for every pixel (repeatable), e.g. "
+                    "--set extinction=0.5")
+    p.add_argument("--iterations", default=30, metavar="N",
+                   help=model + "Levenberg-Marquardt iterations per round")
+    p.add_argument("--rounds", default=3, metavar="N",
+                   help=model + "alternations of the per-pixel fit with the gains and the "
+                                "shadow flags")
+    p.add_argument("--gain-model", default="none", metavar=GAIN_MODEL_MODES,
+                   help=model + "none: a light not fitted has the exposure as its gain; "
+                        "free: each fitted light keeps its gain, a light not fitted gets the "
+                        "smooth trend of the gains in its direction; smooth: the gains are "
+                        "the trend (with residuals of relative spread --gain-spread)")
+    p.add_argument("--gain-degree", default=2, metavar="D",
+                   help=model + "degree of the gains' trend, a polynomial in "
+                                "sin(elevation) (0-6)")
+    p.add_argument("--gain-spread", default=None, metavar="TAU",
+                   help=model + "smooth gains: relative spread of the lights about the trend "
+                        "(e.g. 0.02); default none (the gains are the trend)")
+    p.add_argument("--gain-pixels", default=None, metavar="N", help=model + "pixels of the "
+                   "whole capture the gains are fitted on (--gains fit), then held for every "
+                   "pixel (>= 1; default 16384)")
+    p.add_argument("--memory-gb", default=None, metavar="GB", help=model + "working memory "
+                   "of the fit besides the images, GiB (> 0; default an eighth of this "
+                   "machine's, at most 1.5): pixels are fitted in blocks that fit in it")
+    p.add_argument("--solver", default="drjit", metavar=SOLVER_NAMES,
+                   help=model + "per-pixel solver: drjit (normal equations in Dr.Jit "
+                        "kernels, default) or numpy (the reference)")
+
+
 def _add_tile_options(p: argparse.ArgumentParser) -> None:
-    """fit-maps' tiled fit on a Dask cluster (docs/rti.md, "Tiles and clusters"), its memory
-    and solver. The values are checked by the fit (mitsuba_powder.rti.options), not here."""
+    """fit-maps' tiled fit on a Dask cluster (docs/rti.md, "Tiles and clusters"). The values
+    are checked by the fit (mitsuba_powder.rti.options), not here."""
     p.add_argument("--tile-size", default=None, metavar="PX", help="fit in square tiles of "
                    "PX pixels (>= 8) on a Dask cluster, the gains fitted first on --gain-pixels "
                    "pixels and held; default: one fit of the whole capture in this process")
@@ -325,15 +353,6 @@ def _add_tile_options(p: argparse.ArgumentParser) -> None:
                    "same path)")
     p.add_argument("--resume", action="store_true",
                    help="tiled: keep the tiles already in OUT/tiles (of the same settings)")
-    p.add_argument("--gain-pixels", default=None, metavar="N", help="pixels of the whole "
-                   "capture the gains are fitted on, then held for every pixel (>= 1; default "
-                   "16384)")
-    p.add_argument("--memory-gb", default=None, metavar="GB", help="working memory of the fit "
-                   "besides the images, GiB (> 0; default an eighth of this machine's, at most "
-                   "1.5): pixels are fitted in blocks that fit in it")
-    p.add_argument("--solver", default="drjit", metavar=SOLVER_NAMES,
-                   help="per-pixel solver: drjit (normal equations in Dr.Jit kernels, "
-                        "default) or numpy (the reference)")
 
 
 def _add_relight_parser(sub: argparse._SubParsersAction) -> None:
@@ -359,10 +378,7 @@ def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
                    help="comma-separated: ptm, hsh, lambertian, lambertian_clamped, powder "
                         "(the per-pixel powder fit of fit-maps)")
-    p.add_argument("--free", default=None,
-                   help="powder model: properties fitted per pixel besides the normal "
-                        "(default: see fit-maps)")
-    _add_set_option(p, "powder model: a plugin property held for every pixel (repeatable)")
+    _add_fit_options(p, "powder model: ")
     p.add_argument("--phase", type=int, default=4,
                    help="interpolation protocol: hold out the lights k %% 5 == PHASE (.lp "
                         "order from 0; default 4)")

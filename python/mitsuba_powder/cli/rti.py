@@ -56,6 +56,11 @@ def _fit_options(args: argparse.Namespace, tiled: bool = False, **given):
     given.update(gains=args.gains, max_iterations=_number(args.iterations),
                  rounds=_number(args.rounds), solver=args.solver,
                  memory_gb=_number(args.memory_gb))
+    if args.exposure is not None:
+        if args.reference is not None:
+            raise ValueError(f"--exposure {args.exposure} and --reference {args.reference} "
+                             "were both given; the reference card gives the exposure: give one")
+        given["exposure"] = args.exposure if args.exposure == "fit" else _number(args.exposure)
     if args.gain_pixels is not None:
         given["gain_subsample"] = _number(args.gain_pixels)
     if args.light_distance is not None:
@@ -66,6 +71,41 @@ def _fit_options(args: argparse.Namespace, tiled: bool = False, **given):
     if not tiled:
         given["gain_trend"] = trend
     return fit_options(names=FLAGS, **given)
+
+
+def _reference(args: argparse.Namespace, capture, options):
+    """With ``--reference``: the capture without the card's pixels, the options with the
+    exposure and the relative gains the card gives (:mod:`mitsuba_powder.rti.reference`), and
+    the calibration; else the capture, the options and None."""
+    from dataclasses import replace
+
+    from ..rti.reference import calibrate, parse_reference
+
+    if args.reference is None:
+        return capture, options, None
+    ref = parse_reference(args.reference)
+    cal = calibrate(capture.images, capture.directions, ref, options.saturation)
+    card = ref.mask(capture.shape)
+    mask = ~card if capture.mask is None else capture.mask & ~card
+    if not mask.any():
+        raise ValueError(f"--reference {args.reference} covers every pixel to fit; the card "
+                         "must be a part of the image")
+    e = cal["irradiance"]
+    print(f"reference card: {cal['pixels']} pixels, reflectance {ref.reflectance:g}: exposure "
+          f"{cal['exposure']:.4g}, light irradiances {np.min(e):.4g}-{np.max(e):.4g}"
+          + ("" if cal["estimated"].all() else
+             f" ({int(np.sum(~cal['estimated']))} lights grazing or saturated on the card: "
+             "the others' median)"))
+    options = options.replace(exposure=cal["exposure"],
+                              gains=replace(options.gains, initial=cal["gains"]))
+    return replace(capture, mask=mask), options, cal
+
+
+def _reference_record(cal: dict) -> dict:
+    """fit.json's record of a reference calibration."""
+    return {"box": cal["box"], "reflectance": cal["reflectance"], "pixels": cal["pixels"],
+            "irradiance": [float(v) for v in cal["irradiance"]],
+            "estimated": [bool(v) for v in cal["estimated"]]}
 
 
 def _lp_distance(args: argparse.Namespace, capture, options, size: float | None):
@@ -109,7 +149,11 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
     size = _pixel_size(args)
     capture = _load(args)
     options = _lp_distance(args, capture, options, size)
+    capture, options, cal = _reference(args, capture, options)
     result = run_fit(capture.images, capture.directions, options, capture.mask, print)
+    if cal is not None:
+        result.fit_settings["exposure"].update(source="reference",
+                                               reference=_reference_record(cal))
     path = write_maps(result, args.out, capture, list(capture.names), args.pixel_size)
     _print_maps_summary(result, path, args.out)
     return 0
@@ -118,7 +162,15 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
 def _print_maps_summary(result, path, out: str) -> None:
     """What fit-maps found: the free properties and each map's median and 5-95 % range."""
     info = json.loads(path.read_text())
-    print(f"free per pixel: normal + {', '.join(result.free)} ({result.n_parameters} numbers)")
+    exposure = result.fit_settings.get("exposure") or {}
+    sigma = exposure.get("sigma")
+    print(f"exposure: {result.exposure:.4g}" + (f" +- {sigma:.2g}" if sigma else "")
+          + f" ({exposure.get('source', 'given')}"
+          + ("" if exposure.get("determined", True) else ", NOT determined by the capture")
+          + ")")
+    print(f"free per pixel: normal + {', '.join(result.free)} ({result.n_parameters} numbers)"
+          + ("" if not result.fit_settings.get("free_choice") else
+             ", chosen by cross-validation over held-out lights"))
     for name, st in info["statistics"].items():
         if st.get("median") is not None:
             print(f"  {name}: median {st['median']:.4g} (5-95 %: {st['p5']:.4g}-{st['p95']:.4g})")
@@ -197,27 +249,23 @@ def _cmd_relight(args: argparse.Namespace) -> int:
 def _cmd_compare_maps(args: argparse.Namespace) -> int:
     from ..rti.baselines import BASELINES
     from ..rti.comparison import compare, write_comparison
-    from ..rti.options import fit_options
 
     names = [m.strip() for m in args.models.split(",") if m.strip()]
     unknown = [n for n in names if n != "powder" and n not in BASELINES]
     if unknown or not names:
         raise ValueError(f"--models {args.models!r}: unknown {unknown}; valid models are "
                          f"{', '.join(list(BASELINES) + ['powder'])}")
-    given = {} if args.light_distance is None else {"light_distance": args.light_distance}
-    if args.saturation is not None:
-        given["saturation"] = _number(args.saturation)
-    options = fit_options(free=_names(args.free), fixed=_fixed_properties(args.set),
-                          names=FLAGS, **given)
+    options = _fit_options(args, free=_names(args.free), fixed=_fixed_properties(args.set))
     size = _pixel_size(args)
     capture = _load(args)
+    capture, options, cal = _reference(args, capture, options)
     distance = _compare_distance(args, capture, options, size)
     near = np.any(np.isfinite(distance))
     field = args.field or ("both" if near else "far")
     if field != "far" and not near:
         raise ValueError(f"--field = {field!r} needs a finite light distance (--light-distance "
                          "R or fit, or an .lp of positions)")
-    models = _compared_models(names, field, distance, options)
+    models = _compared_models(names, field, distance, options, capture, cal)
     comp = compare(capture, models, phase=args.phase, light_distance=distance,
                    saturation=options.saturation, saturation_name=options.name("saturation"))
     path = write_comparison(comp, args.out, error_images=not args.no_error_images)
@@ -227,21 +275,51 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compared_models(names: list[str], field: str, distance, options) -> dict:
+def _compared_models(names: list[str], field: str, distance, options, capture=None,
+                     cal: dict | None = None) -> dict:
     """compare-maps' fitters by row name: each model with distant lights (``far``), at the
     light distance (``near``, rows ``<model>_near``) or both; the powder model is the
-    per-pixel fit of fit-maps with ``options``."""
+    per-pixel fit of fit-maps with ``options`` (with a reference card's calibration ``cal``:
+    the fitted lights' relative gains held, the held-out lights relit at their irradiance)."""
+    from dataclasses import replace
+
     from ..rti.comparison import baseline_fitter
     from ..rti.plan import run_fit
 
     def powder(r):
         opts = options.replace(light_distance=r)
-        return lambda images, directions, mask=None: run_fit(images, directions, opts, mask)
+        if cal is None:
+            return lambda images, directions, mask=None: run_fit(images, directions, opts, mask)
+
+        def fit(images, directions, mask=None):
+            idx = _light_indices(capture.directions, directions)
+            kept = opts.replace(gains=replace(opts.gains, initial=cal["gains"][idx]))
+            return _Calibrated(run_fit(images, directions, kept, mask), capture.directions,
+                               cal["irradiance"])
+        return fit
 
     fields = {"far": ((math.inf, ""),), "near": ((distance, "_near"),),
               "both": ((math.inf, ""), (distance, "_near"))}[field]
     return {name + suffix: powder(r) if name == "powder" else baseline_fitter(name, r)
             for name in names for r, suffix in fields}
+
+
+def _light_indices(all_directions: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The rows of ``all_directions`` (K, 3) that ``directions`` (K', 3) are."""
+    diff = np.abs(directions[:, None, :] - all_directions[None, :, :]).max(axis=2)
+    return np.argmin(diff, axis=1)
+
+
+class _Calibrated:
+    """A powder fit relit at each light's irradiance from the reference card."""
+
+    def __init__(self, result, directions: np.ndarray, irradiance: np.ndarray):
+        self.result, self.directions, self.irradiance = result, directions, irradiance
+        self.n_parameters = result.n_parameters
+
+    def predict(self, directions: np.ndarray) -> np.ndarray:
+        gains = self.irradiance[_light_indices(self.directions, directions)]
+        return self.result.predict(directions, gains=gains)
 
 
 def _compare_distance(args: argparse.Namespace, capture, options, size: float | None

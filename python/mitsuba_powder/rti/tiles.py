@@ -15,7 +15,10 @@ tiles); every tile is then fitted with these gains held
 (:meth:`~mitsuba_powder.rti.gains.GainPolicy.held`). With ``gains="fixed"`` the given
 ``initial_gains`` (default 1) are held and no subsample is fitted. A pixel's fit depends only
 on its own observations once the gains are held, so a tiled fit equals an untiled one under
-the same gains. Each worker runs the fit's plan (:func:`mitsuba_powder.rti.plan.run_fit`) with
+the same gains. **The exposure** (not given) is scanned on that subsample likewise
+(:mod:`mitsuba_powder.rti.exposure`), even with the gains held, and held in every tile; the
+free set is the default one unless given (tiles do not choose it by cross-validation). Each
+worker runs the fit's plan (:func:`mitsuba_powder.rti.plan.run_fit`) with
 the tiled fit's own :class:`~mitsuba_powder.rti.options.FitOptions`.
 
 **Workers read the images.** Tasks carry the image paths and the tile's window, never image
@@ -162,6 +165,8 @@ def _plan(capture, encoding: str, mask, options: FitOptions) -> _Plan:
             raise FileNotFoundError(f"{lp}: image {name!r} not found (looked for {path})")
     initial = options.gains.initial
     initial = None if initial is None else check_gains(initial, len(names))
+    # every tile fits the same free set: the default one unless given (no per-tile choice)
+    options = options.replace(given={**options.given, "free": list(options.free)})
     return _Plan(lp, paths, list(names), directions, encoding, mask, options, initial)
 
 
@@ -239,7 +244,8 @@ def _fit_gains(surveys: list[dict], directions: np.ndarray, options: FitOptions)
     _prepare_worker(options.variant)
     images = np.stack([s["samples"] for s in surveys])[:, None]  # (K, 1, N, 3)
     result = run_fit(images, directions, options)
-    return {"gains": result.gains, "stages": result.fit_settings.get("stages", [])}
+    return {"gains": result.gains, "stages": result.fit_settings.get("stages", []),
+            "exposure": result.fit_settings.get("exposure")}
 
 
 def _fit_tile(paths: list[str], encoding: str, tile: Tile, shape: tuple[int, int],
@@ -280,12 +286,15 @@ def _mask(plan: _Plan, shape: tuple[int, int]) -> np.ndarray:
 
 def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np.ndarray,
                 key: str, resume: bool, log: Callable[[str], None]) -> np.ndarray:
-    """The gains every tile holds: ``initial_gains`` (mode ``fixed``), or those fitted on
-    the gain policy's subsample of the masked pixels (read back from ``gains.npz`` on
-    resume)."""
+    """The gains every tile holds: ``initial_gains`` (mode ``fixed``, the exposure given),
+    or those fitted (or the exposure scanned: :mod:`mitsuba_powder.rti.exposure`) on the gain
+    policy's subsample of the masked pixels (read back from ``gains.npz`` on resume), and
+    the exposure's record (None: not fitted)."""
     policy = plan.options.gains
-    if not policy.fitted:
-        return np.ones(len(plan.paths)) if plan.initial_gains is None else plan.initial_gains
+    if not policy.fitted and not plan.options.fits_exposure:
+        exposure = 1.0 if plan.options.exposure is None else float(plan.options.exposure)
+        gains = np.ones(len(plan.paths)) if plan.initial_gains is None else plan.initial_gains
+        return exposure * gains, None
     path = out / TILES_FOLDER / GAINS_FILE
     if resume and path.exists():
         meta = read_meta(path)
@@ -295,19 +304,23 @@ def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np
             with np.load(path, allow_pickle=False) as f:
                 gains = np.array(f["gains"])
             log(f"gains: read from {path}")
-            return gains
+            return gains, meta.get("exposure")
     flat = policy.draw(mask)
     options = plan.options.replace(fixed=_sampled_fixed(plan.options.fixed, shape, flat),
-                                   gains=policy.on_subsample())
+                                   gains=policy.on_subsample() if policy.fitted else policy)
     surveys = [client.submit(_survey, p, plan.encoding, flat, pure=False) for p in plan.paths]
     _check_surveys(client.gather(surveys), plan.names, plan.lp)
     fitted = client.submit(_fit_gains, surveys, plan.directions, options, pure=False).result()
     meta = {"kind": KIND, "settings_hash": key, "pixels": len(flat), "seed": policy.seed,
-            "stages": fitted["stages"]}
+            "stages": fitted["stages"], "exposure": fitted["exposure"]}
     write_atomic(out, GAINS_FILE, {"meta": meta_array(meta), "gains": fitted["gains"]})
-    log(f"gains: fitted on {len(flat)} pixels of the whole capture, held in every tile "
-        f"(range {np.min(fitted['gains']):.4g}-{np.max(fitted['gains']):.4g})")
-    return np.asarray(fitted["gains"])
+    for line in fitted["stages"]:
+        if line.startswith("exposure"):
+            log(line)
+    log(f"gains: {'fitted' if policy.fitted else 'the exposure scanned'} on {len(flat)} "
+        "pixels of the whole capture, held in every tile (range "
+        f"{np.min(fitted['gains']):.4g}-{np.max(fitted['gains']):.4g})")
+    return np.asarray(fitted["gains"]), fitted["exposure"]
 
 
 def _run_tiles(client, plan: _Plan, out: Path, todo: list[Tile], shape: tuple[int, int],
@@ -322,7 +335,7 @@ def _run_tiles(client, plan: _Plan, out: Path, todo: list[Tile], shape: tuple[in
     for tile in todo:
         r0, r1, c0, c1 = tile.window
         options = plan.options.replace(fixed=_window_fixed(plan.options.fixed, shape, tile),
-                                       gains=held)
+                                       gains=held, exposure=None)  # (in the held gains)
         fut = client.submit(_fit_tile, plan.paths, plan.encoding, tile, shape,
                             mask[r0:r1, c0:c1], plan.directions, options, settings_hash,
                             key=f"fit-tile-r{tile.row}-c{tile.col}-{uuid.uuid4().hex[:8]}")
@@ -397,8 +410,18 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
                 f"worker(s), dashboard {cl.dashboard_link}")
         tiles, shape, held, extra = _fit_on(cl, plan, out, size, resume, progress, log,
                                             on_tile)
-    return assemble(out, tiles, shape, held,
-                     {"seconds": time.perf_counter() - t0, **extra})
+    result = assemble(out, tiles, shape, held,
+                      {"seconds": time.perf_counter() - t0, **extra})
+    record = extra.get("exposure")
+    if record is None:  # given (or 1): the gains' mean relative to the initial gains'
+        start = (np.ones(len(held)) if plan.initial_gains is None else plan.initial_gains)
+        given = plan.options.exposure is not None
+        record = {"value": float(np.mean(held) / np.mean(start)) if given else 1.0,
+                  "sigma": 0.0, "source": "given" if given else "initial gains",
+                  "determined": True}
+        result.fit_settings["exposure"] = record
+    result.exposure = float(record["value"])
+    return result
 
 
 def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: bool,
@@ -414,7 +437,7 @@ def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: b
         f"{first['format']} {first['depth']} bit, encoding {plan.encoding}")
     fit_mask = _mask(plan, shape)
     key = _hash(plan.settings_key(fit_mask))
-    held = _held_gains(client, plan, out, shape, fit_mask, key, resume, log)
+    held, exposure = _held_gains(client, plan, out, shape, fit_mask, key, resume, log)
     settings_hash = _hash({"gains_key": key, "held": held, "tile_size": size})
     tiles = tiles_of(shape, size)
     todo = tiles_to_fit(out, tiles, fit_mask, settings_hash, len(plan.paths), resume)
@@ -426,7 +449,7 @@ def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: b
                             bar, on_tile, len(tiles))
     policy = plan.options.gains
     return tiles, shape, held, {
-        "gains": policy.mode,
+        "gains": policy.mode, "exposure": exposure,
         "tiles": {"tile_size": size, "count": len(tiles), "fitted": fitted,
                   "resumed": len(tiles) - len(todo), "gain_pixels": policy.subsample,
                   "gains": policy.mode, "settings_hash": settings_hash, "out": str(out)},
