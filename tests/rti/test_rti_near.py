@@ -150,7 +150,8 @@ def test_smooth_gains_relight_held_out_lights_within_the_noise():
     start = np.full(len(kept), cap["gains"][kept].mean())
     for mode in ("free", "smooth"):
         result = rf.fit_maps(cap["images"][kept], d[kept], fixed=fixed, initial_gains=start,
-                             gain_trend=GainTrend(mode), gains="fit")
+                             gain_trend=GainTrend(mode), gains="fit",
+                             free=rf.MAP_DEFAULT_FREE)
         pred = rf.relight(result, d[held])
         per_light = np.sqrt(np.mean((pred - cap["images"][held]) ** 2, axis=(1, 2, 3)))
         assert np.max(per_light) / NOISE < 1.2, (mode, per_light / NOISE)

@@ -13,12 +13,12 @@ for, in order; :func:`run_plan` runs them, each handing the next what it found
    <mitsuba_powder.rti.options.FitOptions.fits_exposure>`): one global scale of the gains, a
    scan of its logarithm with a quick powder fit of a subsample of pixels spread over the
    mask, then a polish with the full fit of that subsample (:mod:`mitsuba_powder.rti.exposure`);
-3. ``free choice`` (``free`` not given): which properties are free per pixel, the albedo
-   alone or with the surface lobe, by cross-validation over held-out lights on a subsample of
-   pixels (:mod:`mitsuba_powder.rti.selection`);
-4. ``gain subsample`` (gains fitted, more masked pixels than the gain policy's subsample):
+3. ``gain subsample`` (gains fitted, more masked pixels than the gain policy's subsample):
    the maps and gains of a random subsample of the masked pixels, whose gains are then held
    for every pixel (:mod:`mitsuba_powder.rti.gains`);
+4. ``free choice`` (``free`` not given): which properties are free per pixel, the albedo
+   alone or with the surface lobe, by cross-validation over held-out lights on a subsample of
+   pixels, under the gains found so far (:mod:`mitsuba_powder.rti.selection`);
 5. ``blocks``: every masked pixel, in blocks within the memory budget (one block while the
    gains are still fitted: they couple every pixel) (:mod:`mitsuba_powder.rti.blocks`).
 
@@ -117,13 +117,14 @@ def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
         stages.append(Stage("distance scan", subsample_mask(inputs.mask), scan_distance))
     if options.fits_exposure:
         stages.append(Stage("exposure scan", subsample_mask(inputs.mask), scan_exposure))
-    if options.chooses_free and len(free_candidates(options)) > 1:
-        stages.append(Stage("free choice", subsample_mask(inputs.mask), choose_free_set))
     policy = options.gains
     if policy.subsampled(int(inputs.mask.sum())):
         sub = np.zeros(inputs.mask.size, dtype=bool)
         sub[policy.draw(inputs.mask)] = True
         stages.append(Stage("gain subsample", sub.reshape(inputs.shape), fit_gain_subsample))
+    if options.chooses_free and len(free_candidates(options)) > 1:
+        # (after the gains' subsample: the choice relights held-out lights at those gains)
+        stages.append(Stage("free choice", subsample_mask(inputs.mask), choose_free_set))
     stages.append(Stage("blocks", inputs.mask, fit_blocks))
     return FitPlan(inputs, tuple(stages))
 
