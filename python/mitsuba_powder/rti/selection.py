@@ -25,7 +25,8 @@ from .options import FitOptions
 from .pixelfit import Log, fit_pixels
 from .properties import MAP_DEFAULT_FREE
 
-__all__ = ["FOLDS", "TOLERANCE", "FreeChoice", "choose_free", "free_candidates"]
+__all__ = ["FOLDS", "TOLERANCE", "FreeChoice", "choose_free", "free_candidates",
+           "held_out_rms"]
 
 #: Folds of the lights (light k is held out in fold ``k % FOLDS``)
 FOLDS = 5
@@ -68,27 +69,9 @@ def choose_free(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains: 
     """Cross-validate :func:`free_candidates` on the pixels ``sub`` (bool (H, W)) under
     ``gains`` and lights at ``light_distance`` (module docstring)."""
     candidates = free_candidates(options)
-    k = len(inputs.d)
-    folds = max(2, min(int(folds), k))
-    medians = {n: float(np.median(m[sub])) for n, m in inputs.maps.items()}
-    scores = []
-    for free in candidates:
-        opts = options.replace(free=free)
-        data = inputs.pixels(sub, gains, light_distance, opts)
-        ev = PixelEvaluator(opts.others + list(data.fixed_maps), opts.settings, opts.variant)
-        ssr, n = 0.0, 0
-        for f in range(folds):
-            held = np.arange(k) % folds == f
-            if not held.any() or held.all():
-                continue
-            part = fit_pixels(ev, _lights(data, ~held), Log(), medians)
-            pred = _predict(ev, part, data, held)
-            wt = ~np.any(data.obs[:, held] >= opts.saturation, axis=2)     # (P, K_held)
-            r = (pred - data.obs[:, held]) * wt[:, :, None]
-            good = np.isfinite(r).all(axis=(1, 2))
-            ssr += float(np.sum(r[good] ** 2))
-            n += int(3 * np.sum(wt[good]))
-        scores.append(float(np.sqrt(ssr / max(n, 1))))
+    folds = max(2, min(int(folds), len(inputs.d)))
+    scores = [held_out_rms(inputs, sub, options.replace(free=free), gains, light_distance,
+                           folds)[0] for free in candidates]
     best = min(scores)
     chosen = next(c for c, s in zip(candidates, scores) if s <= best * (1 + TOLERANCE))
     log("free set: cross-validated over " + f"{folds} folds of the lights on "
@@ -96,6 +79,32 @@ def choose_free(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains: 
             f"normal + {'+'.join(c)} {s:.4g}" for c, s in zip(candidates, scores))
         + f" (held-out RMS); chosen normal + {', '.join(chosen)}")
     return FreeChoice(candidates, scores, chosen, folds, int(sub.sum()))
+
+
+def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains: np.ndarray,
+                 light_distance, folds: int = FOLDS) -> tuple[float, int]:
+    """The RMS (linear units) of the held-out residuals of the pixels ``sub`` fitted with
+    ``options`` under ``gains`` with each fold of the lights held out in turn (light k in fold
+    ``k % folds``), and the held-out observations it counts (channels of observations not
+    saturated, of pixels whose prediction is finite)."""
+    k = len(inputs.d)
+    medians = {n: float(np.median(m[sub])) for n, m in inputs.maps.items()}
+    data = inputs.pixels(sub, gains, light_distance, options)
+    ev = PixelEvaluator(options.others + list(data.fixed_maps), options.settings,
+                        options.variant)
+    ssr, n = 0.0, 0
+    for f in range(folds):
+        held = np.arange(k) % folds == f
+        if not held.any() or held.all():
+            continue
+        part = fit_pixels(ev, _lights(data, ~held), Log(), medians)
+        pred = _predict(ev, part, data, held)
+        wt = ~np.any(data.obs[:, held] >= options.saturation, axis=2)     # (P, K_held)
+        r = (pred - data.obs[:, held]) * wt[:, :, None]
+        good = np.isfinite(r).all(axis=(1, 2))
+        ssr += float(np.sum(r[good] ** 2))
+        n += int(3 * np.sum(wt[good]))
+    return float(np.sqrt(ssr / max(n, 1))), n
 
 
 def _lights(data: FitData, keep: np.ndarray) -> FitData:
