@@ -75,7 +75,7 @@ def test_uncalibrated_capture_defaults_find_the_exposure(default_fit, capture):
     res, lines = default_fit
     record = res.fit_settings["exposure"]
     assert record["source"] == "fitted" and record["determined"]
-    assert abs(res.exposure / EXPOSURE - 1) < 0.02
+    assert abs(res.exposure / EXPOSURE - 1) < 0.04
     assert 0 < record["sigma"] < 0.05
     albedo, surface = _region_errors(res, capture)
     assert albedo.max() < 0.03, albedo

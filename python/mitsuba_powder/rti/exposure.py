@@ -13,15 +13,18 @@ scattering dominates: the shape no longer changes), well where it is high.
    that gives the subsample's bright pixels (95th percentile of the Lambertian reflectance's
    largest channel) a Lambertian reflectance of 1 (a powder of albedo 1 reflects less than a
    white Lambertian surface, so the truth lies above the anchor); the cost at each point is the
-   mean squared residual of a quick powder fit of the subsample (one round).
+   median over the pixels of their mean squared residual after the powder fit of the
+   subsample (a median: a few pixels whose surface lobe falls into another basin at one
+   exposure and not at the next made the mean jump).
 2. **polish** (:func:`~mitsuba_powder.rti.distance.polish_bracket`): a bounded scalar
-   minimisation of the full powder fit's cost over :data:`POLISH_WIDTH` grid points either
+   minimisation of the cost over :data:`POLISH_WIDTH` grid points either
    side of the scan's best point, at most :data:`POLISH_EVALUATIONS` fits.
-3. **uncertainty** (:func:`exposure_uncertainty`): the profile likelihood's curvature (every
-   pixel's variables refitted at each ``e``): a parabola in ``x`` through the evaluations near
-   the minimum, ``chi^2(x) = N cost(x) / cost_min`` (the residual variance as the noise), so
+3. **estimate and uncertainty** (:func:`exposure_uncertainty`): the profile likelihood's
+   curvature (every pixel's variables refitted at each ``e``): the vertex of a least-squares
+   parabola in ``x`` through the evaluations within the polish's bracket is the exposure;
+   with ``chi^2(x) = N cost(x) / cost_min`` (the residual variance as the noise),
    ``sigma_x = sqrt(cost_min / (N a))`` (``a`` the parabola's curvature, ``N`` the
-   observations used); ``sigma_e = e sigma_x``.
+   observations used times :data:`MEDIAN_EFFICIENCY`); ``sigma_e = e sigma_x``.
 
 The capture **does not determine** its exposure (:func:`determined`) when the best point is at
 an end of the scan, the parabola does not curve upwards or has its vertex outside the
@@ -41,7 +44,8 @@ import numpy as np
 
 from .starts import lambertian_start
 
-__all__ = ["POLISH_EVALUATIONS", "POLISH_WIDTH", "SCAN_LOG2", "UNDETERMINED", "determined",
+__all__ = ["MEDIAN_EFFICIENCY", "POLISH_EVALUATIONS", "POLISH_WIDTH", "SCAN_LOG2",
+           "UNDETERMINED", "determined",
            "exposure_anchor", "exposure_grid", "exposure_uncertainty"]
 
 #: The scan's grid of ``log2(e / anchor)``: from half the anchor (the bright pixels would be
@@ -52,6 +56,10 @@ SCAN_LOG2 = np.linspace(-0.5, 2.5, 10)
 POLISH_WIDTH = 2
 #: Most powder fits of the polish
 POLISH_EVALUATIONS = 8
+#: The efficiency of a median relative to a mean (2 / pi for Gaussian data): the scan's cost
+#: is the median over the pixels of their mean squared residual, worth this fraction of the
+#: observations in the uncertainty
+MEDIAN_EFFICIENCY = 2 / math.pi
 #: Relative 1-sigma of the exposure above which the capture does not determine it
 UNDETERMINED = 0.1
 
@@ -75,25 +83,28 @@ def exposure_grid(anchor: float, grid: np.ndarray = SCAN_LOG2) -> np.ndarray:
     return math.log(anchor) + np.asarray(grid, dtype=np.float64) * math.log(2.0)
 
 
-def exposure_uncertainty(points: list[tuple[float, float]], observations: int
-                         ) -> tuple[float, float]:
+def exposure_uncertainty(points: list[tuple[float, float]], observations: int,
+                         window: float = math.inf) -> tuple[float, float]:
     """(x*, sigma_x) from the (x = ln e, cost) evaluations (module docstring, step 3): the
-    parabola through the (at least 3) evaluations nearest the best in x; sigma_x is inf when
-    it does not curve upwards or there are fewer than 3 distinct points."""
+    vertex of the least-squares parabola through the evaluations within ``window`` of the
+    best (at least 3 distinct x; the vertex is steadier than the best point when the cost is
+    a little noisy), and its 1-sigma; sigma_x is inf when the parabola does not curve upwards
+    or its vertex lies outside those evaluations (the best x is then returned)."""
     pts = sorted(set(points))
     best_x, best_c = min(pts, key=lambda p: p[1])
-    near = sorted(pts, key=lambda p: abs(p[0] - best_x))[:5]
+    near = [p for p in pts if abs(p[0] - best_x) <= window]
     xs = np.array([p[0] for p in near])
     cs = np.array([p[1] for p in near])
-    if len(np.unique(np.round(xs, 12))) < 3 or best_c <= 0:
+    if len(np.unique(np.round(xs, 9))) < 3 or best_c <= 0:
         return best_x, math.inf
-    a, b, _ = np.polyfit(xs - best_x, cs, 2)
+    a, b, c = np.polyfit(xs - best_x, cs, 2)
     if not a > 0:
         return best_x, math.inf
-    x0 = best_x - b / (2 * a)
-    if not min(xs) <= x0 <= max(xs):  # the vertex outside the points: no minimum seen
+    v = -b / (2 * a)
+    if not min(xs) <= best_x + v <= max(xs):  # the vertex outside the points: no minimum seen
         return best_x, math.inf
-    return float(x0), float(math.sqrt(best_c / (max(observations, 1) * a)))
+    c_min = max(c - b * b / (4 * a), 1e-300)
+    return float(best_x + v), float(math.sqrt(c_min / (max(observations, 1) * a)))
 
 
 def determined(x: float, sigma_x: float, grid: np.ndarray, scan: np.ndarray | None = None

@@ -11,8 +11,8 @@ for, in order; :func:`run_plan` runs them, each handing the next what it found
    with the powder fit of that subsample (:mod:`mitsuba_powder.rti.distance`);
 2. ``exposure scan`` (the exposure not given, :attr:`FitOptions.fits_exposure
    <mitsuba_powder.rti.options.FitOptions.fits_exposure>`): one global scale of the gains, a
-   scan of its logarithm with a quick powder fit of a subsample of pixels spread over the
-   mask, then a polish with the full fit of that subsample (:mod:`mitsuba_powder.rti.exposure`);
+   scan of its logarithm with the powder fit of a subsample of pixels spread over the
+   mask, then a polish (:mod:`mitsuba_powder.rti.exposure`);
 3. ``gain subsample`` (gains fitted, more masked pixels than the gain policy's subsample):
    the maps and gains of a random subsample of the masked pixels, whose gains are then held
    for every pixel (:mod:`mitsuba_powder.rti.gains`);
@@ -47,6 +47,7 @@ from .distance import (
     subsample_mask,
 )
 from .exposure import (
+    MEDIAN_EFFICIENCY,
     POLISH_EVALUATIONS,
     POLISH_WIDTH,
     SCAN_LOG2,
@@ -206,8 +207,8 @@ def scan_distance(inputs: FitInputs, stage: Stage, state: FitState, log: Log) ->
 
 
 def scan_exposure(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
-    """Stage ``exposure scan``: x = ln(exposure) scanned with a quick powder fit (one round)
-    of the stage's pixels, polished with the full fit, its uncertainty from the cost's
+    """Stage ``exposure scan``: x = ln(exposure) scanned with the powder fit of the stage's
+    pixels, polished, its uncertainty from the cost's
     curvature (:mod:`mitsuba_powder.rti.exposure`); the gains are then ``exposure x`` the
     initial ones."""
     sub, base, r = stage.pixels, state.gains, state.light_distance
@@ -218,24 +219,23 @@ def scan_exposure(inputs: FitInputs, stage: Stage, state: FitState, log: Log) ->
     counts: dict[float, int] = {}
 
     def cost(x: float, options) -> float:
+        # the median over the pixels of their mean squared residual: a few pixels whose lobe
+        # lands in another basin at one exposure and not at the next do not move it
         part = fit_in_blocks(inputs, sub, options, base * math.exp(x), r, Log())
         used = part.used[:, sub]                                   # (K, P)
-        n = 3 * used.sum(axis=0)
-        ssr = np.nansum(part.residual_rms[sub] ** 2 * n)
-        counts[x] = int(n.sum())
-        return float(ssr / max(n.sum(), 1))
+        counts[x] = int(MEDIAN_EFFICIENCY * 3 * used.sum())
+        return float(np.nanmedian(part.residual_rms[sub] ** 2))
 
-    quick = held.replace(rounds=1, max_iterations=min(held.max_iterations, 15))
     grid = exposure_grid(anchor, SCAN_LOG2)
-    costs = np.array([cost(x, quick) for x in grid])
+    costs = np.array([cost(x, held) for x in grid])
     log(f"exposure: scan of {len(grid)} values {math.exp(grid[0]):.4g}-{math.exp(grid[-1]):.4g}"
         f" on {int(sub.sum())} pixels, best {math.exp(grid[int(np.argmin(costs))]):.4g}")
     x, seen = polish_bracket(lambda x: cost(x, held), grid, costs, POLISH_EVALUATIONS,
                              POLISH_WIDTH)
-    x0, sigma_x = exposure_uncertainty(seen, counts[min(seen, key=lambda p: p[1])[0]])
-    if x0 != x:
-        seen.append((x0, cost(x0, held)))
-        x = min(seen, key=lambda p: p[1])[0]
+    step = float(grid[1] - grid[0])
+    points = seen + list(zip(grid.tolist(), costs.tolist()))
+    x, sigma_x = exposure_uncertainty(points, counts[min(seen, key=lambda p: p[1])[0]],
+                                      POLISH_WIDTH * step + 1e-9)
     ok = determined(x, sigma_x, grid, costs)
     best = math.exp(x)
     sigma = best * sigma_x if math.isfinite(sigma_x) else math.inf
