@@ -85,6 +85,10 @@ def test_blocks_and_their_diagnostics_are_put_together():
     assert merged.fit_settings == {**one, "evaluations": 15, "chunks": 3,
                                    "underdetermined_pixels": 3, "iterations_last_round": 9}
     assert list(merged.fit_settings) == list(one)  # the first part's keys, in their order
-    assert set(SUMMED) == {"evaluations", "chunks", "underdetermined_pixels"}
+    assert set(SUMMED) == {"evaluations", "chunks", "underdetermined_pixels",
+                           "pixels_at_cap_last_round"}
+    capped = merge_fit_settings([{**one, "pixels_at_cap_last_round": 2, "rounds_at_cap": 1},
+                                 {**two, "pixels_at_cap_last_round": 3, "rounds_at_cap": 2}])
+    assert capped["pixels_at_cap_last_round"] == 5 and capped["rounds_at_cap"] == 2
     three = merge_fit_settings([one, two, two])
     assert three["evaluations"] == 20 and three["iterations_last_round"] == 9

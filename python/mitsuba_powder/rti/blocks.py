@@ -142,7 +142,9 @@ def merge_fit_settings(parts: Sequence[Mapping]) -> dict:
     diagnostics of :data:`SUMMED` summed and ``iterations_last_round`` the longest part's."""
     out = dict(parts[0])
     for key in SUMMED:
-        out[key] = sum(int(p.get(key, 0)) for p in parts)
+        if key in out:
+            out[key] = sum(int(p.get(key, 0)) for p in parts)
     out["iterations_last_round"] = max(p["iterations_last_round"] for p in parts)
-    out["rounds_at_cap"] = max(int(p.get("rounds_at_cap", 0)) for p in parts)
+    if "rounds_at_cap" in out:
+        out["rounds_at_cap"] = max(int(p.get("rounds_at_cap", 0)) for p in parts)
     return out
