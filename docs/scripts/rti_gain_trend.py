@@ -1,6 +1,7 @@
 """How much of the per-light gains' trend in elevation a near-field light model explains.
 
-Fits the powder maps of a capture (``fit_maps`` defaults, gains fitted) twice, with distant
+Fits the powder maps of a capture (gains fitted, exposure 1, the default free set: the
+defaults before issue 35) twice, with distant
 lights and with the lights at ``--light-distance`` image widths, and compares the fitted gains:
 their spread (standard deviation of ``ln g``), the slope of ``ln g`` against ``sin(elevation)``
 (least squares over the lights), and the mean gain per elevation ring. The near-field share of
@@ -66,7 +67,10 @@ def main() -> None:
     cap = rf.load_capture(args.lp, encoding=args.encoding)
     gains, seconds = {}, {}
     for name, r in (("far", math.inf), ("near", args.light_distance)):
-        res = rf.fit_maps(cap.images, cap.directions, mask=cap.mask, light_distance=r)
+        # the gains fitted (their mean the exposure, 1) with the default free set: the fit
+        # whose gains docs/rti.md measures (gains are held by default since issue 35)
+        res = rf.fit_maps(cap.images, cap.directions, mask=cap.mask, light_distance=r,
+                          gains="fit", exposure=1.0, free=rf.MAP_DEFAULT_FREE)
         gains[name], seconds[name] = res.gains, res.fit_settings["seconds"]
     stats = {n: trend(cap.directions, g, args.min_elevation) for n, g in gains.items()}
     share = {k: 1.0 - stats["near"][k] / stats["far"][k] for k in ("slope", "slope_high")}
