@@ -413,15 +413,19 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
     result = assemble(out, tiles, shape, held,
                       {"seconds": time.perf_counter() - t0, **extra})
     record = extra.get("exposure")
-    if record is None:  # given (or 1): the gains' mean relative to the initial gains'
-        start = (np.ones(len(held)) if plan.initial_gains is None else plan.initial_gains)
-        given = plan.options.exposure is not None
-        record = {"value": float(np.mean(held) / np.mean(start)) if given else 1.0,
-                  "sigma": 0.0, "source": "given" if given else "initial gains",
-                  "determined": True}
-        result.fit_settings["exposure"] = record
+    if record is None:
+        record = result.fit_settings["exposure"] = _given_exposure(plan, held)
     result.exposure = float(record["value"])
     return result
+
+
+def _given_exposure(plan: _Plan, held: np.ndarray) -> dict:
+    """The exposure record of a tiled fit that did not scan it: given (the held gains' mean
+    relative to the initial gains') or 1 (the initial gains)."""
+    start = np.ones(len(held)) if plan.initial_gains is None else plan.initial_gains
+    given = plan.options.exposure is not None
+    return {"value": float(np.mean(held) / np.mean(start)) if given else 1.0, "sigma": 0.0,
+            "source": "given" if given else "initial gains", "determined": True}
 
 
 def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: bool,
