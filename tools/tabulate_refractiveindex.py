@@ -34,7 +34,8 @@ def formula_index(kind: int, c: list[float], wl: float) -> float:
             n2 += c[i] * l2 / (l2 - c[i + 1])
     elif kind == 4:
         c = c + [0.0] * max(0, 9 - len(c))
-        n2 = c[0] + c[1] * wl ** c[2] / (l2 - c[3] ** c[4]) + c[5] * wl ** c[6] / (l2 - c[7] ** c[8])
+        n2 = (c[0] + c[1] * wl ** c[2] / (l2 - c[3] ** c[4])
+              + c[5] * wl ** c[6] / (l2 - c[7] ** c[8]))
         for i in range(9, len(c) - 1, 2):
             n2 += c[i] * wl ** c[i + 1]
     else:

@@ -63,9 +63,44 @@ Dry powder (:monosp:`powder`)
 
  * - fraction2
    - |float| or |texture|
-   - Volume fraction of the second population; needs ``radius2``
+   - Volume fraction of the solid of the second population; needs ``radius2``; population 1
+     gets 1 - the fractions of the others, which sum to at most 1
      (Default: none (one population), range [0, 1])
    - |exposed|, |differentiable|
+
+ * - radius3
+   - |float| or |texture|
+   - Radius of a third grain population in micrometres; needs ``fraction3`` and population 2
+     (Default: none (no third population), range (0, inf))
+   - |exposed|, |differentiable|
+
+ * - fraction3
+   - |float| or |texture|
+   - Volume fraction of the third population; needs ``radius3``
+     (Default: none (no third population), range [0, 1])
+   - |exposed|, |differentiable|
+
+ * - radius4
+   - |float| or |texture|
+   - Radius of a fourth grain population in micrometres; needs ``fraction4`` and population 3
+     (Default: none (no fourth population), range (0, inf))
+   - |exposed|, |differentiable|
+
+ * - fraction4
+   - |float| or |texture|
+   - Volume fraction of the fourth population; needs ``radius4``
+     (Default: none (no fourth population), range [0, 1])
+   - |exposed|, |differentiable|
+
+ * - material2, material3, material4
+   - |string|
+   - Grain material of population j = 2..4 (as ``material``), for pigment mixtures; needs
+     ``radius{j}`` (Default: the material of population 1)
+
+ * - eta2, k2, eta3, k3, eta4, k4
+   - |float| or |spectrum|
+   - Optical constants of population j = 2..4 instead of ``material{j}``; both or neither
+     (Default: from ``material{j}``, range eta in [0.001, 1000], k in [0, 1000])
 
  * - agglomerate_radius
    - |float| or |texture|
@@ -87,8 +122,9 @@ Dry powder (:monosp:`powder`)
 
  * - material
    - |string|
-   - Grain material for Mie theory and tau_o: ``hematite``, ``magnetite`` or a
-     refractiveindex.info YAML file (Default: ``hematite``)
+   - Grain material for Mie theory and tau_o: ``hematite``, ``magnetite``, ``calcite``,
+     ``quartz``, ``rutile``, ``kaolinite``, ``gypsum`` or a refractiveindex.info YAML file
+     (Default: ``hematite``)
 
  * - eta, k
    - |float| or |spectrum|
@@ -463,9 +499,15 @@ public:
                 << "  agglomerate_fill = " << string::indent(p.agglomerate_fill) << ","
                 << std::endl
                 << "  mixing = " << MixingValues[(size_t) p.mixing] << "," << std::endl;
-        if (p.two_populations)
-            oss << "  radius2 = " << string::indent(p.radius2) << " [um]," << std::endl
-                << "  fraction2 = " << string::indent(p.fraction2) << "," << std::endl;
+        for (size_t j = 1; j < p.populations; ++j)
+            oss << "  " << Table[PopulationRadius[j]].name << " = "
+                << string::indent(p[PopulationRadius[j]]) << " [um]," << std::endl
+                << "  " << Table[PopulationFraction[j]].name << " = "
+                << string::indent(p[PopulationFraction[j]]) << "," << std::endl
+                << (p.material_of[j] == 0 ? std::string()
+                                          : "  optical constants " + std::to_string(j + 1) +
+                                                " = " + p.materials[p.material_of[j]].source +
+                                                ",\n");
         oss << "  optical constants = " << p.optics.source << "," << std::endl
             << "  tau_o = " << (p.tau_given ? show(TauO) : std::string("from Fresnel (Re eta)"))
             << "," << std::endl

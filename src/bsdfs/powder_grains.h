@@ -34,17 +34,81 @@ template <typename Float, typename Spectrum> struct PowderGrains {
         } else {
             table_wavelengths.push_back(p.wavelength);
         }
-        for (double wl : table_wavelengths)
-            grain_index.push_back(p.optics.eval(wl * 1e-3)); // throws if outside the table
+        // each material's index; throws (naming both) if a wavelength is outside its table
+        material_index.assign(p.materials.size(), {});
+        for (size_t mi = 0; mi < p.materials.size(); ++mi)
+            for (double wl : table_wavelengths)
+                material_index[mi].push_back(p.materials[mi].eval(wl * 1e-3));
+        for (size_t i = 0; i < table_wavelengths.size(); ++i) {
+            powder::PopulationIndex m;
+            for (size_t j = 0; j < m.size(); ++j)
+                m[j] = material_index[p.material_of[j]][i];
+            population_index.push_back(m);
+        }
+        grain_index = mixture_index(p, p.fractions());
         if (!p.albedo)
             warn_crystallite_size(p);
+        update_index_tables(p);
+    }
+
+    /// Whether the populations are of different materials (then tau_o and the surface
+    /// Fresnel index depend on the fractions)
+    static bool mixed(const Params &p) { return !p.albedo && p.materials.size() > 1; }
+
+    /// The index of the grains at the table wavelengths: the material's, or for populations
+    /// of different materials the Bruggeman index of the mixture at the fractions `f`
+    /// (docs/model.md, "The mixture's index for tau_o")
+    std::vector<std::complex<double>>
+    mixture_index(const Params &p, const std::array<double, powder_param::MaxPopulations> &f) const {
+        if (!mixed(p))
+            return material_index[0];
+        powder::Grains g;
+        g.populations = p.populations;
+        g.set_fractions(f);
+        std::vector<double> w(g.f.begin(), g.f.begin() + p.populations);
+        std::vector<std::complex<double>> out;
+        for (const powder::PopulationIndex &m : population_index)
+            out.push_back(powder::bruggeman_mixture(
+                std::vector<std::complex<double>>(m.begin(), m.begin() + p.populations), w));
+        return out;
+    }
+
+    /// tau_o (Fresnel) and the surface Fresnel index from grain_index; for a mixture with
+    /// gradients tracked on a fraction, d tau_o / d f_j (a difference of step 1e-6) as
+    /// tangents
+    void update_index_tables(const Params &p) {
         if (!p.tau_given) {
-            std::vector<ScalarFloat> tau;
-            for (const auto &m : grain_index)
-                tau.push_back((ScalarFloat) powder::tau_o_fresnel(m.real()));
+            auto tau_of = [](const std::vector<std::complex<double>> &index) {
+                std::vector<ScalarFloat> tau;
+                for (const auto &m : index)
+                    tau.push_back((ScalarFloat) powder::tau_o_fresnel(m.real()));
+                return tau;
+            };
+            std::vector<ScalarFloat> tau = tau_of(grain_index);
             tau_table = Tables::upload(tau);
             tau_table_constant =
                 std::all_of(tau.begin(), tau.end(), [&](ScalarFloat t) { return t == tau[0]; });
+            if constexpr (dr::is_diff_v<Float>) {
+                if (mixed(p))
+                    for (size_t j = 1; j < p.populations; ++j) {
+                        const Float &fj = p[powder_param::PopulationFraction[j]];
+                        if (!dr::grad_enabled(fj))
+                            continue;
+                        auto f = p.fractions();
+                        const double h = 1e-6;
+                        f[j] += f[j] + h <= 1.0 ? h : -h;
+                        double step = f[j] - p.fractions()[j];
+                        std::vector<double> t1(tau.size());
+                        std::vector<std::complex<double>> index = mixture_index(p, f);
+                        std::vector<ScalarFloat> d(tau.size());
+                        for (size_t i = 0; i < tau.size(); ++i)
+                            d[i] = (ScalarFloat) ((powder::tau_o_fresnel(index[i].real()) -
+                                                   powder::tau_o_fresnel(grain_index[i].real())) /
+                                                  step);
+                        tau_table = tau_table + Tables::upload(d) * (fj - dr::detach(fj));
+                    }
+                dr::make_opaque(tau_table);
+            }
         }
         if (p.surface_fresnel)
             fresnel = Tables::fresnel_index(grain_index, table_wavelengths);
@@ -129,6 +193,10 @@ template <typename Float, typename Spectrum> struct PowderGrains {
             update_grain_texture_table(p);
         else if (!p.albedo && grains_changed)
             update_mie_tables(p);
+        if (mixed(p) && grains_changed && !keys.empty()) {
+            grain_index = mixture_index(p, p.fractions());
+            update_index_tables(p);
+        }
         if (p.albedo && (keys.empty() || string::contains(keys, "albedo")))
             Textures::check_albedo(p.albedo.get());
 
@@ -154,32 +222,36 @@ template <typename Float, typename Spectrum> struct PowderGrains {
 
     /// The grains of the constant grain parameters
     static powder::Grains constant_grains(const Params &p) {
-        return { Params::value_of(p.radius), Params::value_of(p.radius2),
-                 Params::value_of(p.fraction2), p.two_populations, p.grain_model,
-                 Params::value_of(p.agglomerate_radius), Params::value_of(p.agglomerate_fill),
-                 p.mixing };
+        powder::Grains g;
+        g.populations = p.agglomerate() ? 1 : p.populations;
+        for (size_t j = 0; j < g.populations; ++j)
+            g.r[j] = Params::value_of(p[powder_param::PopulationRadius[j]]);
+        if (p.agglomerate())
+            g.r[0] = Params::value_of(p.radius);
+        g.set_fractions(p.fractions());
+        g.model = p.grain_model;
+        g.agglomerate_radius = Params::value_of(p.agglomerate_radius);
+        g.agglomerate_fill = Params::value_of(p.agglomerate_fill);
+        g.mixing = p.mixing;
+        return g;
     }
 
     /// The Mie tables; rho's derivatives are attached as tangents when gradients are
     /// tracked on a grain parameter
     void update_mie_tables(const Params &p) {
-        std::vector<std::pair<const Float *, double powder::AlbedoRow::*>> params;
-        for (auto [id, d] : { std::pair{ powder_param::Radius, &powder::AlbedoRow::d_r1 },
-                              std::pair{ powder_param::Radius2, &powder::AlbedoRow::d_r2 },
-                              std::pair{ powder_param::Fraction2, &powder::AlbedoRow::d_f2 },
-                              std::pair{ powder_param::AgglomerateRadius,
-                                         &powder::AlbedoRow::d_ra },
-                              std::pair{ powder_param::AgglomerateFill,
-                                         &powder::AlbedoRow::d_fill } })
-            if (p.in_use(id))
-                params.emplace_back(&p[id], d);
+        std::vector<std::pair<const Float *, powder_param::Id>> params;
+        for (size_t i = 0; i < powder_param::Count; ++i) {
+            powder_param::Id id = (powder_param::Id) i;
+            if (powder_param::is_grain_param(id) && p.in_use(id))
+                params.emplace_back(&p[id], id);
+        }
         bool tangents = false;
         if constexpr (dr::is_diff_v<Float>)
             for (auto &gp : params)
                 tangents |= dr::grad_enabled(*gp.first);
         if (!tangents)
             params.clear();
-        mie = Tables::mie_tables(constant_grains(p), table_wavelengths, grain_index, params);
+        mie = Tables::mie_tables(constant_grains(p), table_wavelengths, population_index, params);
     }
 
     /// Spatially varying grains: relative accuracy of the tabulated albedo (checked at
@@ -214,87 +286,124 @@ template <typename Float, typename Spectrum> struct PowderGrains {
                       "%s)", powder_param::Table[held].name,
                       powder_param::Table[p.table_param()].name, powder_param::Table[held].name);
         double held_value = p.agglomerate() ? Params::value_of(p[held]) : 0.0;
-        auto [lo, hi] = p.value_range(p.table_param());
-        if (p.two_populations && !p.agglomerate()) {
-            auto [lo2, hi2] = p.value_range(powder_param::Radius2);
-            lo = std::min(lo, lo2);
-            hi = std::max(hi, hi2);
-        }
-        if (grain.table.nodes > 0 && lo >= grain_table_lo && hi <= grain_table_hi &&
-            held_value == grain_table_held)
-            return; // the current table covers the values
-        powder::Grains g{ 1.0, 1.0, 0.0, false, p.grain_model, 1.0, 0.5, p.mixing };
-        double lo_t, hi_t;
-        if (fill) {
-            // fills in (0, 1]: widened by 0.05 each way where they can be (a single
-            // fill of 1 gets the interval [0.95, 1])
-            lo_t = std::max(lo - 0.05, 0.5 * lo);
-            hi_t = std::min(hi + 0.05, 1.0);
-            g.agglomerate_radius = Params::value_of(p.agglomerate_radius);
-        } else {
-            lo_t = lo / 1.25;
-            hi_t = hi * 1.25;
-            if (p.grain_model != powder::GrainModel::Slab) {
-                // keep the widened range inside the size parameters Mie accepts
-                auto [wl_lo, wl_hi] = std::minmax_element(table_wavelengths.begin(),
-                                                          table_wavelengths.end());
-                lo_t = std::max(lo_t, std::min(lo, 1e-3 * *wl_hi * 1e-3 / (2.0 * M_PI)));
-                hi_t = std::min(hi_t, std::max(hi, 200.0 * *wl_lo * 1e-3 / (2.0 * M_PI)));
+        // one table per material, over the radii of its populations (agglomerates: one)
+        size_t tables = p.agglomerate() ? 1 : p.materials.size();
+        for (size_t mi = 0; mi < tables; ++mi) {
+            double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+            const char *name = powder_param::Table[p.table_param()].name;
+            if (p.agglomerate()) {
+                std::tie(lo, hi) = p.value_range(p.table_param());
+            } else {
+                for (size_t j = 0; j < p.populations; ++j) {
+                    if (p.material_of[j] != mi)
+                        continue;
+                    auto [l, h] = p.value_range(powder_param::PopulationRadius[j]);
+                    lo = std::min(lo, l);
+                    hi = std::max(hi, h);
+                    if (l == lo)
+                        name = powder_param::Table[powder_param::PopulationRadius[j]].name;
+                }
             }
-            hi_t = std::max(hi_t, lo_t * 1.001);
-            g.agglomerate_fill = Params::value_of(p.agglomerate_fill);
+            GrainTable &t = grain_tables[mi];
+            if (t.tex.table.nodes > 0 && lo >= t.lo && hi <= t.hi && held_value == t.held)
+                continue; // the current table covers the values
+            powder::Grains g;
+            g.model = p.grain_model;
+            g.mixing = p.mixing;
+            double lo_t, hi_t;
+            if (fill) {
+                // fills in (0, 1]: widened by 0.05 each way where they can be (a single
+                // fill of 1 gets the interval [0.95, 1])
+                lo_t = std::max(lo - 0.05, 0.5 * lo);
+                hi_t = std::min(hi + 0.05, 1.0);
+                g.agglomerate_radius = Params::value_of(p.agglomerate_radius);
+            } else {
+                lo_t = lo / 1.25;
+                hi_t = hi * 1.25;
+                if (p.grain_model != powder::GrainModel::Slab) {
+                    // keep the widened range inside the size parameters Mie accepts
+                    auto [wl_lo, wl_hi] = std::minmax_element(table_wavelengths.begin(),
+                                                              table_wavelengths.end());
+                    lo_t = std::max(lo_t, std::min(lo, 1e-3 * *wl_hi * 1e-3 / (2.0 * M_PI)));
+                    hi_t = std::min(hi_t, std::max(hi, 200.0 * *wl_lo * 1e-3 / (2.0 * M_PI)));
+                }
+                hi_t = std::max(hi_t, lo_t * 1.001);
+                g.agglomerate_fill = Params::value_of(p.agglomerate_fill);
+            }
+            build_grain_texture_table(p, g, mi, name, lo, hi, lo_t, hi_t,
+                                      fill ? powder::TableAxis::Fill
+                                           : powder::TableAxis::LogRadius);
+            t.held = held_value;
         }
-        build_grain_texture_table(p, g, lo, hi, lo_t, hi_t,
-                                  fill ? powder::TableAxis::Fill : powder::TableAxis::LogRadius);
-        grain_table_held = held_value;
     }
 
-    /// Build the grain texture table over [lo_t, hi_t] of its variable (covering the
-    /// texture values [lo, hi]) and upload its records
-    void build_grain_texture_table(const Params &p, const powder::Grains &grains, double lo,
-                                   double hi, double lo_t, double hi_t,
-                                   powder::TableAxis axis) {
+    /// Build the grain texture table of material mi over [lo_t, hi_t] of its variable
+    /// (covering the texture values [lo, hi]; `name` the property, for errors) and upload
+    /// its records
+    void build_grain_texture_table(const Params &p, const powder::Grains &grains, size_t mi,
+                                   const char *name, double lo, double hi, double lo_t,
+                                   double hi_t, powder::TableAxis axis) {
         bool fill = axis == powder::TableAxis::Fill;
         double error = 0.0;
-        grain = Tables::grain_texture(powder::efficiency_table(
-            grains, lo_t, hi_t, table_wavelengths, grain_index,
-            powder_param::Table[p.table_param()].name, GrainTableTolerance, GrainTableRecords,
-            error, DrJitParallelFor(), axis));
+        GrainTable &t = grain_tables[mi];
+        t.tex = Tables::grain_texture(powder::efficiency_table(
+            grains, lo_t, hi_t, table_wavelengths, material_index[mi], name,
+            GrainTableTolerance, GrainTableRecords, error, DrJitParallelFor(), axis));
         if (error > GrainTableTolerance)
             Log(Warn, "powder: the albedo table of %s %g-%g%s is accurate to %.2g "
                       "(relative, at the midpoints of its %zu nodes), not %g: the values "
                       "span too many Mie resonances for %zu records; narrow the texture's "
                       "range", fill ? "fills" : "radii", lo_t, hi_t, fill ? "" : " um",
-                error, grain.table.nodes, GrainTableTolerance, GrainTableRecords);
-        grain_table_lo = lo_t;
-        grain_table_hi = hi_t;
-        // a mean albedo for the sampling weights only: at the middle of the range
-        double r_mid = fill ? 0.5 * (lo + hi) : std::sqrt(lo * hi), rho = 0.0;
-        for (size_t i = 0; i < table_wavelengths.size(); ++i) {
-            auto [qe, qs] = powder::efficiency_at(grain.table, i, r_mid);
-            rho += qs / qe;
+                error, t.tex.table.nodes, GrainTableTolerance, GrainTableRecords);
+        t.lo = lo_t;
+        t.hi = hi_t;
+        if (mi == 0) {
+            // a mean albedo for the sampling weights only: at the middle of the range
+            double r_mid = fill ? 0.5 * (lo + hi) : std::sqrt(lo * hi), rho = 0.0;
+            for (size_t i = 0; i < table_wavelengths.size(); ++i) {
+                auto [qe, qs] = powder::efficiency_at(t.tex.table, i, r_mid);
+                rho += qs / qe;
+            }
+            grain_rho_mean = rho / (double) table_wavelengths.size();
         }
-        grain_rho_mean = rho / (double) table_wavelengths.size();
         // the constant-radius tables are not used; keep them valid for packing
         FloatStorage zero = dr::zeros<FloatStorage>(table_wavelengths.size());
         mie = { zero, zero, zero, zero, zero };
+        DRJIT_MARK_USED(p);
     }
 
     /// The albedo of spatially varying grains per lane (docs/model.md; slab: Q_ext = 1,
     /// Q_sca = rho)
     UnpolarizedSpectrum grain_texture_albedo(const Params &p, const SurfaceInteraction3f &si,
                                              Mask active) const {
-        Float r1 = p.at(p.table_param(), si, active);
-        if (!p.two_populations)
-            return Tables::grain_albedo(grain, r1, nullptr, nullptr, si, active);
-        Float r2 = p.at(powder_param::Radius2, si, active),
-              f2 = p.at(powder_param::Fraction2, si, active);
-        return Tables::grain_albedo(grain, r1, &r2, &f2, si, active);
+        if (p.agglomerate() || p.populations == 1) {
+            Float r1 = p.at(p.table_param(), si, active);
+            const typename Tables::GrainTexture *t = &grain_tables[0].tex;
+            return Tables::grain_albedo(&t, &r1, &r1, 1, si, active);
+        }
+        const typename Tables::GrainTexture *t[powder_param::MaxPopulations];
+        Float r[powder_param::MaxPopulations], f[powder_param::MaxPopulations];
+        for (size_t j = 0; j < p.populations; ++j) {
+            t[j] = &grain_tables[p.material_of[j]].tex;
+            r[j] = p.at(powder_param::PopulationRadius[j], si, active);
+            f[j] = j == 0 ? Float(1.f) : p.at(powder_param::PopulationFraction[j], si, active);
+        }
+        return Tables::grain_albedo(t, r, f, p.populations, si, active);
     }
+
+    /// The efficiency table of one material's spatially varying grains, the values it
+    /// covers and the agglomerate property it holds
+    struct GrainTable {
+        typename Tables::GrainTexture tex;
+        double lo = 0.0, hi = 0.0, held = 0.0;
+    };
 
     // grain tables (powder_tables.h), at the table wavelengths
     std::vector<double> table_wavelengths;         ///< nm
-    std::vector<std::complex<double>> grain_index; ///< n + i k at those wavelengths
+    std::vector<std::complex<double>> grain_index; ///< n + i k (of the mixture) there
+    /// each material's index at those wavelengths, and each population's
+    std::vector<std::vector<std::complex<double>>> material_index;
+    std::vector<powder::PopulationIndex> population_index;
     typename Tables::MieTables mie;
     FloatStorage tau_table;
     bool tau_table_constant = false;     ///< every entry of tau_table is the same
@@ -302,14 +411,15 @@ template <typename Float, typename Spectrum> struct PowderGrains {
     /// RGB and mono: the entries of the albedo and tau_o tables, one per channel
     UnpolarizedSpectrum rho_channels = 0.f, tau_channels = 0.f;
     typename Tables::FresnelIndex fresnel; ///< surface_fresnel
-    /// spatially varying grains: the efficiency table (grain_texture_albedo), the
-    /// values it covers and the agglomerate property it holds
-    typename Tables::GrainTexture grain;
-    double grain_table_lo = 0.0, grain_table_hi = 0.0, grain_table_held = 0.0;
+    /// spatially varying grains: the efficiency table of each material
+    /// (grain_texture_albedo)
+    std::array<GrainTable, powder_param::MaxPopulations> grain_tables;
     double grain_rho_mean = 0.5;
 
     POWDER_TRAVERSE_MEMBERS(rho_channels, tau_channels, packed, mie, tau_table,
-                            fresnel.records, grain.records)
+                            fresnel.records, grain_tables[0].tex.records,
+                            grain_tables[1].tex.records, grain_tables[2].tex.records,
+                            grain_tables[3].tex.records)
 };
 
 NAMESPACE_END(mitsuba)

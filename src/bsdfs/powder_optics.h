@@ -174,6 +174,60 @@ inline std::complex<double> effective_index(std::complex<double> m, double f, Mi
     return std::sqrt(eps);
 }
 
+/**
+ * The Bruggeman effective index sqrt(eps) of a mixture of materials of indices m_j at volume
+ * fractions f_j (summing to 1; docs/model.md, "The mixture's index for tau_o"): the root
+ * with Im(eps) >= 0 of sum_j f_j (eps_j - eps) / (eps_j + 2 eps) = 0, eps_j = m_j^2, by
+ * Newton's method from the volume average of the eps_j. One distinct index (or one fraction
+ * of 1) returns it exactly.
+ */
+inline std::complex<double> bruggeman_mixture(const std::vector<std::complex<double>> &m,
+                                              const std::vector<double> &f) {
+    using C = std::complex<double>;
+    std::vector<C> e;
+    std::vector<double> w;
+    for (size_t j = 0; j < m.size(); ++j) { // distinct materials with a positive fraction
+        if (!(f[j] > 0.0))
+            continue;
+        size_t i = 0;
+        while (i < e.size() && e[i] != m[j] * m[j])
+            ++i;
+        if (i == e.size()) {
+            e.push_back(m[j] * m[j]);
+            w.push_back(0.0);
+        }
+        w[i] += f[j];
+    }
+    if (e.size() == 1)
+        for (size_t j = 0; j < m.size(); ++j)
+            if (f[j] > 0.0)
+                return m[j];
+    if (e.empty())
+        fail("powder: the fractions of the grain populations are all 0");
+    C eps(0.0);
+    double total = 0.0;
+    for (size_t i = 0; i < e.size(); ++i) {
+        eps += w[i] * e[i];
+        total += w[i];
+    }
+    eps /= total;
+    for (int it = 0; it < 200; ++it) {
+        C F(0.0), dF(0.0);
+        for (size_t i = 0; i < e.size(); ++i) {
+            C d = e[i] + 2.0 * eps;
+            F += w[i] * (e[i] - eps) / d;
+            dF += w[i] * (-3.0 * e[i]) / (d * d);
+        }
+        C step = F / dF;
+        eps -= step;
+        if (eps.imag() < 0.0)
+            eps = C(eps.real(), 0.0);
+        if (std::abs(step) <= 1e-14 * std::abs(eps))
+            return std::sqrt(eps);
+    }
+    fail("powder: the Bruggeman index of the grain mixture did not converge");
+}
+
 /// Hapke's equivalent-slab albedo and its derivative with respect to the grain
 /// size D (um) for index m = n + ik (n > 1) at wavelength wl_um (docs/model.md)
 inline std::pair<double, double> slab_albedo(std::complex<double> m, double d_um,
@@ -195,25 +249,41 @@ inline std::pair<double, double> slab_albedo(std::complex<double> m, double d_um
 
 // ------------------------------------------------------------ albedo table
 
-/// The grains (docs/model.md): radius r1 (um), and with `two` a second radius r2 (um)
-/// of volume fraction f2; for agglomerates their radius (um), fill and mixing rule
-/// (r1 is then the crystallite radius, which does not enter the albedo)
+/// The grains (docs/model.md): `populations` populations (1..4) of radii r[j] (um) and
+/// volume fractions f[j] of the solid, f[j] for j >= 1 given and f[0] = 1 - the others;
+/// for agglomerates (one population) their radius (um), fill and mixing rule (r[0] is then
+/// the crystallite radius, which does not enter the albedo)
 struct Grains {
-    double r1, r2 = 1.0, f2 = 0.0;
-    bool two = false;
+    static constexpr size_t Max = powder_param::MaxPopulations;
+    std::array<double, Max> r{ 1.0, 1.0, 1.0, 1.0 }, f{ 1.0, 0.0, 0.0, 0.0 };
+    size_t populations = 1;
     GrainModel model = GrainModel::Sphere;
     double agglomerate_radius = 1.0, agglomerate_fill = 0.5;
     Mixing mixing = Mixing::Bruggeman;
+
+    /// Set the fractions of populations 2..n; population 1 gets 1 - their sum
+    void set_fractions(const std::array<double, Max> &given) {
+        f[0] = 1.0;
+        for (size_t j = 1; j < Max; ++j) {
+            f[j] = j < populations ? given[j] : 0.0;
+            f[0] -= f[j];
+        }
+        f[0] = std::max(f[0], 0.0); // (a sum above 1 by rounding)
+    }
 };
 
+/// The grain index of each population at one wavelength
+using PopulationIndex = std::array<std::complex<double>, powder_param::MaxPopulations>;
+
 /// One wavelength of the albedo table: rho = sum_j (f_j / r_j) Q_sca,j / sum_j
-/// (f_j / r_j) Q_ext,j, its derivatives with respect to the fittable grain
-/// parameters (zero unless requested, or for a parameter not in use), and the
-/// efficiencies of each population (agglomerates: of the agglomerate; slab:
+/// (f_j / r_j) Q_ext,j, its derivatives with respect to the fittable grain parameters
+/// (indexed by powder_param::Id; zero unless requested, or for a parameter not in use),
+/// and the efficiencies of each population (agglomerates: of the agglomerate; slab:
 /// Q_ext = 1, Q_sca = rho of the slab)
 struct AlbedoRow {
-    double rho, d_r1 = 0.0, d_r2 = 0.0, d_f2 = 0.0, d_ra = 0.0, d_fill = 0.0;
-    double q_ext1, q_sca1, q_ext2 = 0.0, q_sca2 = 0.0;
+    double rho = 0.0;
+    std::array<double, powder_param::Count> d{};
+    std::array<double, powder_param::MaxPopulations> q_ext{}, q_sca{};
 };
 /// (Q_ext, Q_sca, dQ_ext/dr, dQ_sca/dr) of Mie spheres of radius r (um) and index m
 /// at wl_nm; the derivatives (only with `derivatives`) by a forward difference in x
@@ -276,54 +346,53 @@ inline AlbedoRow agglomerate_row(const Grains &g, double wl_nm, std::complex<dou
     double fill = g.agglomerate_fill, ra = g.agglomerate_radius;
     auto a = population_efficiencies(ra, wl_nm, effective_index(m, fill, g.mixing),
                                      "agglomerate_radius", derivatives);
-    row.q_ext1 = a[0];
-    row.q_sca1 = a[1];
+    row.q_ext[0] = a[0];
+    row.q_sca[0] = a[1];
     row.rho = a[1] / a[0];
     if (derivatives) {
-        row.d_ra = (a[3] - row.rho * a[2]) / a[0];
+        row.d[powder_param::AgglomerateRadius] = (a[3] - row.rho * a[2]) / a[0];
         const double h = 1e-6;
         double fill2 = fill + h <= 1.0 ? fill + h : fill - h;
         auto b = population_efficiencies(ra, wl_nm, effective_index(m, fill2, g.mixing),
                                          "agglomerate_radius", false);
-        row.d_fill = (b[1] / b[0] - row.rho) / (fill2 - fill);
+        row.d[powder_param::AgglomerateFill] = (b[1] / b[0] - row.rho) / (fill2 - fill);
     }
     return row;
 }
 
-/// The albedo table row at one wavelength (nm) for grain index m
-inline AlbedoRow albedo_row(const Grains &g, double wl_nm, std::complex<double> m,
+/// The albedo table row at one wavelength (nm) for the grain index m[j] of each population
+inline AlbedoRow albedo_row(const Grains &g, double wl_nm, const PopulationIndex &m,
                             bool derivatives) {
     if (g.model == GrainModel::Agglomerate)
-        return agglomerate_row(g, wl_nm, m, derivatives);
-    if (g.model == GrainModel::Slab)
-        check_slab_index(m, wl_nm);
+        return agglomerate_row(g, wl_nm, m[0], derivatives);
     AlbedoRow row;
-    auto a = population(g, g.r1, wl_nm, m, "radius", derivatives);
-    double r1 = g.r1, f2 = g.f2, w1 = (1.0 - f2) / r1;
-    double ne = w1 * a[0], rho = a[1] / a[0]; // (sum_j (f_j / r_j) Q_ext,j: derivatives)
-    double dns_r1 = (1.0 - f2) * (a[3] / r1 - a[1] / (r1 * r1)),
-           dne_r1 = (1.0 - f2) * (a[2] / r1 - a[0] / (r1 * r1));
-    double dns_r2 = 0.0, dne_r2 = 0.0, dns_f = -a[1] / r1, dne_f = -a[0] / r1;
-    row.q_ext1 = a[0];
-    row.q_sca1 = a[1];
-    if (g.two) {
-        double r2 = g.r2;
-        auto b = population(g, r2, wl_nm, m, "radius2", derivatives);
-        ne += f2 / r2 * b[0];
-        rho = population_mix(a[0], a[1], r1, b[0], b[1], r2, f2);
-        dns_r2 = f2 * (b[3] / r2 - b[1] / (r2 * r2));
-        dne_r2 = f2 * (b[2] / r2 - b[0] / (r2 * r2));
-        dns_f += b[1] / r2;
-        dne_f += b[0] / r2;
-        row.q_ext2 = b[0];
-        row.q_sca2 = b[1];
+    // N = sum_j (f_j / r_j) Q_sca,j, D = sum_j (f_j / r_j) Q_ext,j, rho = N / D; with
+    // f_1 = 1 - sum_{j>=2} f_j: dN/df_j = Q_sca,j / r_j - Q_sca,1 / r_1 (and D alike)
+    std::array<std::array<double, 4>, Grains::Max> q{};
+    double num = 0.0, den = 0.0;
+    for (size_t j = 0; j < g.populations; ++j) {
+        if (g.model == GrainModel::Slab)
+            check_slab_index(m[j], wl_nm);
+        q[j] = population(g, g.r[j], wl_nm, m[j],
+                          powder_param::Table[powder_param::PopulationRadius[j]].name,
+                          derivatives);
+        num += g.f[j] / g.r[j] * q[j][1];
+        den += g.f[j] / g.r[j] * q[j][0];
+        row.q_ext[j] = q[j][0];
+        row.q_sca[j] = q[j][1];
     }
-    row.rho = rho;
+    row.rho = g.populations == 1 ? q[0][1] / q[0][0] : num / den;
     if (derivatives) {
-        row.d_r1 = (dns_r1 - rho * dne_r1) / ne;
-        if (g.two) { // (one population: zero, not a difference of rounding errors)
-            row.d_r2 = (dns_r2 - rho * dne_r2) / ne;
-            row.d_f2 = (dns_f - rho * dne_f) / ne;
+        for (size_t j = 0; j < g.populations; ++j) {
+            double r = g.r[j], f = g.f[j];
+            double dn = f * (q[j][3] / r - q[j][1] / (r * r)),
+                   dd = f * (q[j][2] / r - q[j][0] / (r * r));
+            row.d[powder_param::PopulationRadius[j]] = (dn - row.rho * dd) / den;
+            if (j == 0)
+                continue; // (one population: no fraction, not a difference of rounding errors)
+            dn = q[j][1] / r - q[0][1] / g.r[0];
+            dd = q[j][0] / r - q[0][0] / g.r[0];
+            row.d[powder_param::PopulationFraction[j]] = (dn - row.rho * dd) / den;
         }
     }
     return row;
@@ -377,7 +446,7 @@ void for_each_row(size_t n, ParallelFor &&parallel_for, Row &&row) {
  */
 template <typename ParallelFor = SerialFor>
 std::vector<AlbedoRow> albedo_table(const Grains &g, const std::vector<double> &wl_nm,
-                                    const std::vector<std::complex<double>> &index,
+                                    const std::vector<PopulationIndex> &index,
                                     bool derivatives,
                                     ParallelFor &&parallel_for = ParallelFor()) {
     std::vector<AlbedoRow> rows(wl_nm.size());

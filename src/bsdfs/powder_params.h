@@ -13,6 +13,7 @@
 #include <mitsuba/render/texture.h>
 
 #include <limits>
+#include <optional>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -194,29 +195,38 @@ read_spectrum(const Properties &props, const char *name) {
           "value=\"400:2.5, 700:2.9\"/>", name, name);
 }
 
-/// Optical constants from `eta`/`k` or `material` (a built-in name or a YAML file)
-inline powder::OpticalTable load_optics(const Properties &props) {
-    bool has_eta = props.has_property("eta"), has_k = props.has_property("k");
+/// Optical constants of grain population j (0-based) from `eta{j}`/`k{j}` or
+/// `material{j}` (a built-in name or a YAML file); population 1's default is hematite, and
+/// a population j >= 2 without its own has none (it is made of population 1's material)
+inline std::optional<powder::OpticalTable> load_optics(const Properties &props, size_t j = 0) {
+    const char *eta = PopulationEta[j], *k = PopulationK[j], *mat = PopulationMaterial[j];
+    bool has_eta = props.has_property(eta), has_k = props.has_property(k);
     if (has_eta || has_k) {
         if (!(has_eta && has_k))
-            Throw("powder: give both \"eta\" and \"k\" (got only \"%s\")", has_eta ? "eta" : "k");
-        if (props.has_property("material"))
-            Throw("powder: give either \"material\" or \"eta\" and \"k\", not both");
-        auto [wl_e, v_e] = read_spectrum(props, "eta");
-        auto [wl_k, v_k] = read_spectrum(props, "k");
+            Throw("powder: give both \"%s\" and \"%s\" (got only \"%s\")", eta, k,
+                  has_eta ? eta : k);
+        if (props.has_property(mat))
+            Throw("powder: give either \"%s\" or \"%s\" and \"%s\", not both", mat, eta, k);
+        auto [wl_e, v_e] = read_spectrum(props, eta);
+        auto [wl_k, v_k] = read_spectrum(props, k);
         for (double v : v_e)
-            check_range(EtaNumber.name, v, EtaNumber.range);
+            check_range(eta, v, EtaNumber.range);
         for (double v : v_k)
-            check_range(KNumber.name, v, KNumber.range);
-        return powder::table_from_pairs(wl_e, v_e, wl_k, v_k);
+            check_range(k, v, KNumber.range);
+        powder::OpticalTable t = powder::table_from_pairs(wl_e, v_e, wl_k, v_k);
+        if (j > 0)
+            t.source = "the \"" + std::string(eta) + "\" and \"" + k + "\" spectra";
+        return t;
     }
-    std::string material = props.get<std::string>("material", MaterialName.def);
+    if (j > 0 && !props.has_property(mat))
+        return std::nullopt;
+    std::string material = props.get<std::string>(mat, MaterialName.def);
     auto resolve = [&](const std::string &name) {
         fs::path p = file_resolver()->resolve(name);
         if (!fs::exists(p))
-            Throw("powder: cannot find \"%s\" (material \"%s\"): import "
+            Throw("powder: cannot find \"%s\" (%s \"%s\"): import "
                   "mitsuba_powder, or add its folder to the file resolver "
-                  "(mitsuba -a)", name, material);
+                  "(mitsuba -a)", name, mat, material);
         return p.string();
     };
     if (const Material *m = find_material(material)) {
@@ -232,8 +242,8 @@ inline powder::OpticalTable load_optics(const Properties &props) {
     std::string names;
     for (const Material &m : Materials)
         names += std::string("\"") + m.name + "\", ";
-    Throw("powder: property \"material\" = \"%s\" is not valid; valid values are "
-          "%sor the path of a refractiveindex.info YAML file (.yml)", material, names);
+    Throw("powder: property \"%s\" = \"%s\" is not valid; valid values are "
+          "%sor the path of a refractiveindex.info YAML file (.yml)", mat, material, names);
 }
 
 } // namespace powder_param
@@ -276,6 +286,10 @@ template <typename Float, typename Spectrum> struct PowderParams {
         using namespace powder_param;
         tau_given = props.has_property("tau_o");
         two_populations = props.has_property("radius2") || props.has_property("fraction2");
+        populations = 1;
+        for (size_t j = 1; j < MaxPopulations; ++j)
+            if (props.has_property(Table[PopulationRadius[j]].name))
+                populations = j + 1;
         std::tie(grain_model, mixing) = read_grain_model(props);
         // The float parameters; a fittable one may be a texture (evaluated at si.uv)
         for (size_t i = 0; i < Count; ++i) {
@@ -318,7 +332,31 @@ template <typename Float, typename Spectrum> struct PowderParams {
         std::array<double, 3> rgb = read_rgb_wavelengths(props);
         for (size_t i = 0; i < 3; ++i)
             rgb_wavelengths[i] = (ScalarFloat) rgb[i];
-        optics = load_optics(props);
+        optics = *load_optics(props);
+        // the distinct materials of the populations (material_of: each one's)
+        materials = { optics };
+        for (size_t j = 1; j < populations; ++j) {
+            std::optional<powder::OpticalTable> t = load_optics(props, j);
+            material_of[j] = 0;
+            if (!t)
+                continue;
+            size_t i = 0;
+            while (i < materials.size() && materials[i].source != t->source)
+                ++i;
+            if (i == materials.size())
+                materials.push_back(std::move(*t));
+            material_of[j] = i;
+        }
+        if (!albedo_given(props))
+            check_fraction_sum();
+        if (materials.size() > 1 && !tau_given)
+            for (size_t j = 1; j < populations; ++j)
+                if (textured(PopulationFraction[j]))
+                    Throw("powder: property \"%s\" is a texture, and the grain populations are "
+                          "of different materials, so tau_o (from the mixture's Bruggeman "
+                          "index) would vary over the surface: give \"tau_o\", or \"%s\" as a "
+                          "float (docs/model.md, \"The mixture's index for tau_o\")",
+                          Table[PopulationFraction[j]].name, Table[PopulationFraction[j]].name);
         if (props.has_property("albedo")) {
             albedo = props.get_texture<Texture>("albedo");
             Textures::check_albedo(albedo.get());
@@ -331,8 +369,37 @@ template <typename Float, typename Spectrum> struct PowderParams {
         warn_outside_regime();
     }
 
+    static bool albedo_given(const Properties &props) { return props.has_property("albedo"); }
+
+    /// The largest value a fraction holds (its texture's largest value)
+    double largest(powder_param::Id p) const {
+        if (textured(p))
+            return texture_values(p).found ? texture_values(p).hi : 0.0;
+        return std::get<1>(powder_param::lane_range((*this)[p]));
+    }
+
+    /// The fractions of populations 2..n sum to at most 1 (population 1 has the rest)
+    void check_fraction_sum() const {
+        if (populations < 2)
+            return;
+        double sum = 0.0;
+        std::string names, values;
+        for (size_t j = 1; j < populations; ++j) {
+            powder_param::Id f = powder_param::PopulationFraction[j];
+            sum += largest(f);
+            names += std::string(j > 1 ? " + " : "") + powder_param::Table[f].name;
+            values += std::string(j > 1 ? " + " : "") + std::to_string(largest(f));
+        }
+        if (!(sum <= 1.0 + 1e-6))
+            Throw("powder: properties %s = %s = %g exceed 1; valid range of their sum is "
+                  "[0, 1] (volume fractions of the solid; population 1 gets 1 - their sum)",
+                  names, values, sum);
+    }
+
     /// Check every parameter in use (a value per lane: each lane), as after an edit
     void check() const {
+        if (!albedo)
+            check_fraction_sum();
         for (size_t i = 0; i < powder_param::Count; ++i) {
             powder_param::Id p = (powder_param::Id) i;
             if (!in_use(p))
@@ -397,7 +464,9 @@ template <typename Float, typename Spectrum> struct PowderParams {
             &PowderParams::av, &PowderParams::g, &PowderParams::kappa, &PowderParams::tau_o,
             &PowderParams::thickness, &PowderParams::as, &PowderParams::lc, &PowderParams::sigma,
             &PowderParams::radius, &PowderParams::radius2, &PowderParams::fraction2,
-            &PowderParams::agglomerate_radius, &PowderParams::agglomerate_fill
+            &PowderParams::agglomerate_radius, &PowderParams::agglomerate_fill,
+            &PowderParams::radius3, &PowderParams::fraction3, &PowderParams::radius4,
+            &PowderParams::fraction4
         };
         return members[p];
     }
@@ -412,7 +481,11 @@ template <typename Float, typename Spectrum> struct PowderParams {
             case powder_param::TauO: return tau_given;
             case powder_param::Radius: return !albedo && !agglomerate();
             case powder_param::Radius2:
-            case powder_param::Fraction2: return !albedo && two_populations;
+            case powder_param::Fraction2: return !albedo && populations >= 2;
+            case powder_param::Radius3:
+            case powder_param::Fraction3: return !albedo && populations >= 3;
+            case powder_param::Radius4:
+            case powder_param::Fraction4: return !albedo && populations >= 4;
             case powder_param::AgglomerateRadius:
             case powder_param::AgglomerateFill: return !albedo && agglomerate();
             case powder_param::CorrelationLength:
@@ -483,12 +556,24 @@ template <typename Float, typename Spectrum> struct PowderParams {
 
     /// Whether a grain property that sets the albedo is a texture
     bool grain_textured() const {
-        return !albedo &&
-               (agglomerate() ? textured(powder_param::AgglomerateRadius) ||
-                                    textured(powder_param::AgglomerateFill)
-                              : textured(powder_param::Radius) ||
-                                    (two_populations && (textured(powder_param::Radius2) ||
-                                                         textured(powder_param::Fraction2))));
+        if (albedo)
+            return false;
+        if (agglomerate())
+            return textured(powder_param::AgglomerateRadius) ||
+                   textured(powder_param::AgglomerateFill);
+        for (size_t j = 0; j < populations; ++j)
+            if (textured(powder_param::PopulationRadius[j]) ||
+                (j > 0 && textured(powder_param::PopulationFraction[j])))
+                return true;
+        return false;
+    }
+
+    /// The fraction of each population 2..n (population 1's entry unused)
+    std::array<double, powder_param::MaxPopulations> fractions() const {
+        std::array<double, powder_param::MaxPopulations> f{ 1.0, 0.0, 0.0, 0.0 };
+        for (size_t j = 1; j < populations; ++j)
+            f[j] = value_of((*this)[powder_param::PopulationFraction[j]]);
+        return f;
     }
 
     /// The grain parameter the texture table runs over (its texture sets the lanes): the
@@ -526,20 +611,27 @@ template <typename Float, typename Spectrum> struct PowderParams {
     /// the float parameters (powder_param::Table; member)
     Float av, g, kappa, tau_o, thickness, as, lc, sigma;
     Float radius, radius2, fraction2, agglomerate_radius, agglomerate_fill;
+    Float radius3, fraction3, radius4, fraction4;
     ref<Texture> textures[powder_param::Count]; ///< texture-valued float parameters
     powder::GrainModel grain_model = powder::GrainModel::Sphere;
     powder::Mixing mixing = powder::Mixing::Bruggeman;
     bool tau_given = false, two_populations = false;
+    size_t populations = 1;       ///< grain populations (1..4)
     SpecularModel specular;
     bool surface_fresnel = false, cosine_only = false;
     bool conserving = false;      ///< energy = "conserving"
     Lobes lobes;
     ScalarFloat wavelength;       ///< nm (mono)
     ScalarFloat rgb_wavelengths[3]; ///< nm (RGB)
-    powder::OpticalTable optics; ///< the grain material's index
+    powder::OpticalTable optics; ///< the grain material's index (population 1)
+    /// the distinct materials of the populations (the first is `optics`) and each
+    /// population's among them
+    std::vector<powder::OpticalTable> materials;
+    std::array<size_t, powder_param::MaxPopulations> material_of{ 0, 0, 0, 0 };
 
     POWDER_TRAVERSE_MEMBERS(albedo, textures, av, g, kappa, tau_o, thickness, as, lc, sigma,
-                            radius, radius2, fraction2, agglomerate_radius, agglomerate_fill)
+                            radius, radius2, fraction2, agglomerate_radius, agglomerate_fill,
+                            radius3, fraction3, radius4, fraction4)
 };
 
 NAMESPACE_END(mitsuba)

@@ -9,6 +9,7 @@
  * Python package; so this header has no Mitsuba or Dr.Jit dependency.
  */
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstring>
@@ -91,8 +92,22 @@ struct Spec {
 
 enum Id : size_t {
     AmplitudeVolume, G, Extinction, TauO, Thickness, AmplitudeSurface, CorrelationLength,
-    Sigma, Radius, Radius2, Fraction2, AgglomerateRadius, AgglomerateFill, Count
+    Sigma, Radius, Radius2, Fraction2, AgglomerateRadius, AgglomerateFill, Radius3, Fraction3,
+    Radius4, Fraction4, Count
 };
+
+/// Grain populations (docs/model.md, "Several materials"): population j (0-based here, j + 1
+/// in the property names) has the radius PopulationRadius[j] and, for j >= 1, the volume
+/// fraction PopulationFraction[j] (population 1 gets 1 - the others)
+inline constexpr size_t MaxPopulations = 4;
+inline constexpr Id PopulationRadius[MaxPopulations] = { Radius, Radius2, Radius3, Radius4 };
+inline constexpr Id PopulationFraction[MaxPopulations] = { Count, Fraction2, Fraction3,
+                                                           Fraction4 };
+/// The material properties of each population ("material{j}", "eta{j}", "k{j}")
+inline constexpr const char *PopulationMaterial[MaxPopulations] = { "material", "material2",
+                                                                    "material3", "material4" };
+inline constexpr const char *PopulationEta[MaxPopulations] = { "eta", "eta2", "eta3", "eta4" };
+inline constexpr const char *PopulationK[MaxPopulations] = { "k", "k2", "k3", "k4" };
 
 inline constexpr Spec Table[Count] = {
     // name                 unit    default  default as documented
@@ -123,12 +138,21 @@ inline constexpr Spec Table[Count] = {
           { 0.0, Inf, false, false }, true },
     { "agglomerate_fill",   "-",    0.5,     "0.5",
           { 1e-6, 1.0, true, true }, true },
+    { "radius3",            "um",   1.0,     "none (no third population)",
+          { 0.0, Inf, false, false }, true },
+    { "fraction3",          "-",    0.0,     "none (no third population)",
+          { 0.0, 1.0, true, true }, true },
+    { "radius4",            "um",   1.0,     "none (no fourth population)",
+          { 0.0, Inf, false, false }, true },
+    { "fraction4",          "-",    0.0,     "none (no fourth population)",
+          { 0.0, 1.0, true, true }, true },
 };
 
 /// Whether a float parameter has a default: the others are computed (tau_o) or absent
 /// unless given (the second population, the agglomerate radius)
 constexpr bool has_default(Id p) {
-    return p != TauO && p != Radius2 && p != Fraction2 && p != AgglomerateRadius;
+    return p != TauO && p != Radius2 && p != Fraction2 && p != AgglomerateRadius &&
+           p != Radius3 && p != Fraction3 && p != Radius4 && p != Fraction4;
 }
 
 /// The float parameter of a name (Count if none)
@@ -142,7 +166,8 @@ inline Id find(const char *name) {
 /// Whether a parameter describes the grains (it sets the Mie / grain tables)
 constexpr bool is_grain_param(Id p) {
     return p == Radius || p == Radius2 || p == Fraction2 || p == AgglomerateRadius ||
-           p == AgglomerateFill;
+           p == AgglomerateFill || p == Radius3 || p == Fraction3 || p == Radius4 ||
+           p == Fraction4;
 }
 
 /// The parameters the normalisation of energy = "conserving" is tabulated from (one value
@@ -237,15 +262,32 @@ struct Material {
     const char *name;
     std::array<const char *, 2> files;
     const char *source;
+    double density; ///< g/cm^3 (Handbook of Mineralogy, measured): mass to volume fractions
 };
 
 inline constexpr Material Materials[] = {
     { "hematite",
       { "data/optical_constants/hematite_Querry-o.yml",
         "data/optical_constants/hematite_Querry-e.yml" },
-      "hematite (Querry 1985, orientation average of o and e rays)" },
+      "hematite (Querry 1985, orientation average of o and e rays)", 5.26 },
     { "magnetite", { "data/optical_constants/magnetite_Querry.yml", nullptr },
-      "magnetite (Querry 1985)" },
+      "magnetite (Querry 1985)", 5.18 },
+    { "calcite",
+      { "data/optical_constants/calcite_Ghosh-o.yml",
+        "data/optical_constants/calcite_Ghosh-e.yml" },
+      "calcite (Ghosh 1999, orientation average of o and e rays)", 2.71 },
+    { "quartz",
+      { "data/optical_constants/quartz_Ghosh-o.yml",
+        "data/optical_constants/quartz_Ghosh-e.yml" },
+      "quartz (Ghosh 1999, orientation average of o and e rays)", 2.65 },
+    { "rutile",
+      { "data/optical_constants/rutile_Devore-o.yml",
+        "data/optical_constants/rutile_Devore-e.yml" },
+      "rutile (Devore 1951, orientation average of o and e rays)", 4.25 },
+    { "kaolinite", { "data/optical_constants/kaolinite_constant.yml", nullptr },
+      "kaolinite (constant index 1.564, Handbook of Mineralogy)", 2.63 },
+    { "gypsum", { "data/optical_constants/gypsum_constant.yml", nullptr },
+      "gypsum (constant index 1.524, Handbook of Mineralogy)", 2.31 },
 };
 
 /// The built-in material of a name (nullptr if none)
@@ -256,20 +298,35 @@ inline const Material *find_material(const std::string &name) {
     return nullptr;
 }
 
+/// The properties of the populations 2..4 (allowed by grain models with several populations)
+inline constexpr std::array<const char *, 15> PopulationProperties = {
+    "radius2", "fraction2", "material2", "eta2", "k2", "radius3", "fraction3", "material3",
+    "eta3", "k3", "radius4", "fraction4", "material4", "eta4", "k4"
+};
+
 /// The properties that describe the grains; which of them a grain model allows is its rule
+/// (and PopulationProperties, with several populations)
 inline constexpr std::array<const char *, 6> GrainProperties = {
     "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
 };
 
 /// The properties a given `albedo` replaces (an error together with it): the grain model
-/// and every property of the grains
+/// and every property of the grains (and PopulationProperties)
 inline constexpr std::array<const char *, 7> AlbedoExcludes = {
     "grains", "radius", "radius2", "fraction2", "agglomerate_radius", "agglomerate_fill", "mixing"
 };
 
+/// Whether a property is one of populations 2..4
+inline bool is_population_property(const char *name) {
+    for (const char *a : PopulationProperties)
+        if (std::strcmp(a, name) == 0)
+            return true;
+    return false;
+}
+
 /// A grain model (a value of `grains`, in the order of ChoiceTable[Grains]): the parameter
 /// that is its (first) population's size, the grain properties it allows and requires,
-/// and whether it allows a second population (radius2 and fraction2)
+/// and whether it allows populations 2..4 (PopulationProperties)
 struct GrainRule {
     Id size;
     std::array<const char *, 4> allowed; ///< nullptr-padded
@@ -277,6 +334,8 @@ struct GrainRule {
     bool two_populations;
 
     bool allows(const char *name) const {
+        if (two_populations && is_population_property(name))
+            return true;
         for (const char *a : allowed)
             if (a && std::strcmp(a, name) == 0)
                 return true;
@@ -300,13 +359,23 @@ template <typename Has> void check_grain_properties(size_t model, const Has &has
     const Choice &grains = ChoiceTable[Grains];
     if (albedo)
         for (const char *name : AlbedoExcludes)
+            if (name && has(name))
+                powder::fail("powder: property \"", name, "\" has no effect together with "
+                             "\"albedo\" (a given albedo replaces the one computed from the "
+                             "grains); give one or the other");
+    if (albedo)
+        for (const char *name : PopulationProperties)
             if (has(name))
                 powder::fail("powder: property \"", name, "\" has no effect together with "
                              "\"albedo\" (a given albedo replaces the one computed from the "
                              "grains); give one or the other");
     const GrainRule &rule = GrainRules[model];
-    for (const char *name : GrainProperties) {
-        if (!has(name) || rule.allows(name))
+    std::array<const char *, GrainProperties.size() + PopulationProperties.size()> names{};
+    std::copy(GrainProperties.begin(), GrainProperties.end(), names.begin());
+    std::copy(PopulationProperties.begin(), PopulationProperties.end(),
+              names.begin() + GrainProperties.size());
+    for (const char *name : names) {
+        if (!name || !has(name) || rule.allows(name))
             continue;
         std::string valid;
         size_t n = 0;
@@ -321,9 +390,23 @@ template <typename Has> void check_grain_properties(size_t model, const Has &has
         powder::fail("powder: grains = \"", grains.values[model], "\" needs property \"",
                      rule.required, "\" (valid range is ", Table[find(rule.required)].range.str(),
                      ")");
-    if (has("radius2") != has("fraction2"))
-        powder::fail("powder: a second grain population needs both \"radius2\" and "
-                     "\"fraction2\"; got only \"", has("radius2") ? "radius2" : "fraction2", "\"");
+    // populations 2..4: radius{j} and fraction{j} together, numbered without gaps, a
+    // material only with its population, not both material{j} and eta{j}/k{j}
+    for (size_t j = 1; j < MaxPopulations; ++j) {
+        const char *r = Table[PopulationRadius[j]].name, *f = Table[PopulationFraction[j]].name;
+        if (has(r) != has(f))
+            powder::fail("powder: grain population ", j + 1, " needs both \"", r, "\" and \"",
+                         f, "\"; got only \"", has(r) ? r : f, "\"");
+        if (has(r) && j > 1 && !has(Table[PopulationRadius[j - 1]].name))
+            powder::fail("powder: grain population ", j + 1, " (\"", r, "\") needs population ",
+                         j, " (\"", Table[PopulationRadius[j - 1]].name, "\" and \"",
+                         Table[PopulationFraction[j - 1]].name, "\"): populations are "
+                         "numbered 2, 3, 4 without gaps");
+        for (const char *m : { PopulationMaterial[j], PopulationEta[j], PopulationK[j] })
+            if (has(m) && !has(r))
+                powder::fail("powder: property \"", m, "\" describes grain population ", j + 1,
+                             ", which needs \"", r, "\" and \"", f, "\"");
+    }
 }
 
 } // namespace powder_param

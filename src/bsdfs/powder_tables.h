@@ -220,24 +220,28 @@ template <typename Float, typename Spectrum> struct PowderTables {
     /// graph as tangents. The rows are spread over Dr.Jit's threads.
     static MieTables
     mie_tables(const powder::Grains &grains, const std::vector<double> &wavelengths,
-               const std::vector<std::complex<double>> &index,
-               const std::vector<std::pair<const Float *, double powder::AlbedoRow::*>> &params) {
+               const std::vector<powder::PopulationIndex> &index,
+               const std::vector<std::pair<const Float *, powder_param::Id>> &params) {
         std::vector<powder::AlbedoRow> rows = powder::albedo_table(
             grains, wavelengths, index, !params.empty(), DrJitParallelFor());
         size_t n = rows.size();
-        auto column = [&](double powder::AlbedoRow::*c) {
+        auto column = [&](auto get) {
             std::vector<ScalarFloat> v(n);
             for (size_t i = 0; i < n; ++i)
-                v[i] = (ScalarFloat) (rows[i].*c);
+                v[i] = (ScalarFloat) get(rows[i]);
             return upload(v);
         };
-        MieTables t{ column(&powder::AlbedoRow::rho), column(&powder::AlbedoRow::q_ext1),
-                     column(&powder::AlbedoRow::q_sca1), column(&powder::AlbedoRow::q_ext2),
-                     column(&powder::AlbedoRow::q_sca2) };
+        MieTables t{ column([](const powder::AlbedoRow &r) { return r.rho; }),
+                     column([](const powder::AlbedoRow &r) { return r.q_ext[0]; }),
+                     column([](const powder::AlbedoRow &r) { return r.q_sca[0]; }),
+                     column([](const powder::AlbedoRow &r) { return r.q_ext[1]; }),
+                     column([](const powder::AlbedoRow &r) { return r.q_sca[1]; }) };
         // value unchanged (the differences are zero), first derivatives exact
         if constexpr (dr::is_diff_v<Float>)
-            for (auto &[param, d] : params)
-                t.rho = t.rho + column(d) * (*param - dr::detach(*param));
+            for (auto &[param, id] : params)
+                t.rho = t.rho + column([id = id](const powder::AlbedoRow &r) {
+                    return r.d[id];
+                }) * (*param - dr::detach(*param));
         dr::make_opaque(t.rho);
         return t;
     }
@@ -299,16 +303,31 @@ template <typename Float, typename Spectrum> struct PowderTables {
         return { qe, qs };
     }
 
-    /// The albedo of spatially varying grains per lane (radii r1, r2 and fraction f2 of the
-    /// second population, per lane; one population without `two`)
-    static UnpolarizedSpectrum grain_albedo(const GrainTexture &g, const Float &r1,
-                                            const Float *r2, const Float *f2,
+    /// The albedo of spatially varying grains per lane: `n` populations, population j of
+    /// radius r[j] (per lane) with the efficiencies of the table tables[j] (of its material)
+    /// and, for j >= 1, fraction f[j] (per lane; population 1 has 1 - the others)
+    static UnpolarizedSpectrum grain_albedo(const GrainTexture *const *tables, const Float *r,
+                                            const Float *f, size_t n,
                                             const SurfaceInteraction3f &si, Mask active) {
-        auto [qe1, qs1] = grain_efficiencies(g, r1, si, active);
-        if (!r2)
+        auto [qe1, qs1] = grain_efficiencies(*tables[0], r[0], si, active);
+        if (n == 1)
             return qs1 / qe1;
-        auto [qe2, qs2] = grain_efficiencies(g, *r2, si, active);
-        return powder::population_mix(qe1, qs1, r1, qe2, qs2, *r2, *f2);
+        if (n == 2) { // (as before several materials: the same arithmetic)
+            auto [qe2, qs2] = grain_efficiencies(*tables[1], r[1], si, active);
+            return powder::population_mix(qe1, qs1, r[0], qe2, qs2, r[1], f[1]);
+        }
+        Float f1 = 1.f;
+        for (size_t j = 1; j < n; ++j)
+            f1 -= f[j];
+        Float w1 = dr::maximum(f1, 0.f) / r[0];
+        UnpolarizedSpectrum num = w1 * qs1, den = w1 * qe1;
+        for (size_t j = 1; j < n; ++j) {
+            auto [qe, qs] = grain_efficiencies(*tables[j], r[j], si, active);
+            Float w = f[j] / r[j];
+            num += w * qs;
+            den += w * qe;
+        }
+        return num / den;
     }
 };
 

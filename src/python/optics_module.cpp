@@ -48,7 +48,8 @@ albedo_table(const std::string &grains, const std::vector<double> &wavelengths_n
              std::optional<double> radius2, std::optional<double> fraction2,
              std::optional<double> agglomerate_radius, double agglomerate_fill,
              const std::string &mixing, bool derivatives) {
-    powder::Grains g{ radius };
+    powder::Grains g;
+    g.r[0] = radius;
     size_t model = powder_param::choice_index("grains", grains);
     g.model = (powder::GrainModel) model;
     if (wavelengths_nm.size() != index.size())
@@ -68,9 +69,9 @@ albedo_table(const std::string &grains, const std::vector<double> &wavelengths_n
     if (radius2) {
         check("radius2", *radius2);
         check("fraction2", *fraction2);
-        g.two = true;
-        g.r2 = *radius2;
-        g.f2 = *fraction2;
+        g.populations = 2;
+        g.r[1] = *radius2;
+        g.set_fractions({ 1.0, *fraction2, 0.0, 0.0 });
     }
     if (g.model == powder::GrainModel::Agglomerate) {
         check("agglomerate_radius", *agglomerate_radius);
@@ -81,13 +82,81 @@ albedo_table(const std::string &grains, const std::vector<double> &wavelengths_n
     }
     for (double wl : wavelengths_nm)
         check_positive("wavelength (nm)", wl);
+    std::vector<powder::PopulationIndex> pindex;
+    for (const auto &m : index)
+        pindex.push_back({ m, m, m, m });
     std::vector<powder::AlbedoRow> rows =
-        powder::albedo_table(g, wavelengths_nm, index, derivatives);
+        powder::albedo_table(g, wavelengths_nm, pindex, derivatives);
+    std::vector<double> rho;
+    std::vector<std::vector<double>> d;
+    using namespace powder_param;
+    for (const powder::AlbedoRow &r : rows) {
+        rho.push_back(r.rho);
+        d.push_back({ r.d[Radius], r.d[Radius2], r.d[Fraction2], r.d[AgglomerateRadius],
+                      r.d[AgglomerateFill] });
+    }
+    return { rho, d };
+}
+
+/// The albedo of a mixture of populations (radius, fraction, index per wavelength), the
+/// first population's fraction None (1 - the others): rho per wavelength and per
+/// wavelength [d r1, d r2, d f2, ...] (docs/model.md, "Several materials")
+std::pair<std::vector<double>, std::vector<std::vector<double>>>
+mixture_albedo(const std::string &grains, const std::vector<double> &wavelengths_nm,
+               const std::vector<std::tuple<double, std::optional<double>,
+                                            std::vector<std::complex<double>>>> &populations,
+               bool derivatives) {
+    using namespace powder_param;
+    size_t model = choice_index("grains", grains);
+    if (model == 1)
+        powder::fail("grains = \"agglomerate\" has one population; use albedo_table");
+    if (populations.empty() || populations.size() > MaxPopulations)
+        powder::fail("populations: ", populations.size(), " given; valid range is [1, ",
+                     MaxPopulations, "]");
+    powder::Grains g;
+    g.model = (powder::GrainModel) model;
+    g.populations = populations.size();
+    std::array<double, MaxPopulations> f{ 1.0, 0.0, 0.0, 0.0 };
+    double sum = 0.0;
+    for (size_t j = 0; j < populations.size(); ++j) {
+        auto &[r, fj, idx] = populations[j];
+        check(Table[PopulationRadius[j]].name, r);
+        if (j == 0 && fj)
+            powder::fail("the fraction of population 1 is 1 - the others: give None");
+        if (j > 0) {
+            if (!fj)
+                powder::fail("population ", j + 1, " needs a fraction");
+            check(Table[PopulationFraction[j]].name, *fj);
+            f[j] = *fj;
+            sum += *fj;
+        }
+        if (idx.size() != wavelengths_nm.size())
+            powder::fail("population ", j + 1, ": ", idx.size(), " indices for ",
+                         wavelengths_nm.size(), " wavelengths");
+        g.r[j] = r;
+    }
+    if (!(sum <= 1.0 + 1e-6))
+        powder::fail("the fractions of populations 2..", populations.size(), " sum to ", sum,
+                     "; valid range of their sum is [0, 1]");
+    g.set_fractions(f);
+    for (double wl : wavelengths_nm)
+        check_positive("wavelength (nm)", wl);
+    std::vector<powder::PopulationIndex> pindex(wavelengths_nm.size());
+    for (size_t i = 0; i < wavelengths_nm.size(); ++i)
+        for (size_t j = 0; j < MaxPopulations; ++j)
+            pindex[i][j] = std::get<2>(populations[std::min(j, populations.size() - 1)])[i];
+    std::vector<powder::AlbedoRow> rows =
+        powder::albedo_table(g, wavelengths_nm, pindex, derivatives);
     std::vector<double> rho;
     std::vector<std::vector<double>> d;
     for (const powder::AlbedoRow &r : rows) {
         rho.push_back(r.rho);
-        d.push_back({ r.d_r1, r.d_r2, r.d_f2, r.d_ra, r.d_fill });
+        std::vector<double> dj{ r.d[Radius] };
+        for (size_t j = 1; j < populations.size(); ++j) {
+            dj.push_back(r.d[PopulationRadius[j]]);
+            dj.push_back(r.d[PopulationFraction[j]]);
+        }
+        d.push_back(dj);
     }
     return { rho, d };
 }
@@ -96,6 +165,13 @@ std::vector<std::string> materials() {
     std::vector<std::string> out;
     for (const powder_param::Material &m : powder_param::Materials)
         out.push_back(m.name);
+    return out;
+}
+
+std::map<std::string, double> material_densities() {
+    std::map<std::string, double> out;
+    for (const powder_param::Material &m : powder_param::Materials)
+        out[m.name] = m.density;
     return out;
 }
 
@@ -232,6 +308,32 @@ void def_tables(nb::module_ &m) {
           "(docs/model.md, \"Grain models\"); radii in um, wavelengths in nm, index n + ik per "
           "wavelength.");
 
+    m.def("mixture_albedo", &mixture_albedo, nb::arg("grains"), nb::arg("wavelengths_nm"),
+          nb::arg("populations"), nb::arg("derivatives") = false,
+          "The plugin's albedo of several grain populations of their own materials "
+          "(docs/model.md, \"Several materials\"): populations = [(radius um, fraction, index "
+          "n + ik per wavelength), ...], the first fraction None (1 - the others); returns "
+          "(rho per wavelength, per wavelength [d/d radius, d/d radius2, d/d fraction2, ...]).");
+
+    m.def("bruggeman_mixture",
+          [](const std::vector<std::complex<double>> &index, const std::vector<double> &f) {
+              if (index.size() != f.size() || index.empty())
+                  powder::fail("index and fractions differ in length or are empty (",
+                               index.size(), " and ", f.size(), ")");
+              double sum = 0.0;
+              for (double v : f) {
+                  if (!(v >= 0.0 && v <= 1.0))
+                      powder::fail("fraction = ", v, " is out of range; valid range is [0, 1]");
+                  sum += v;
+              }
+              if (!(std::abs(sum - 1.0) <= 1e-6))
+                  powder::fail("the fractions sum to ", sum, "; they must sum to 1");
+              return powder::bruggeman_mixture(index, f);
+          },
+          nb::arg("index"), nb::arg("fractions"),
+          "Bruggeman effective index of materials of indices n + ik at volume fractions "
+          "summing to 1 (the index tau_o of a mixture comes from).");
+
     m.def("load_optical_constants",
           [](const std::string &path) {
               powder::OpticalTable t = powder::load_refractiveindex_yaml(path);
@@ -254,6 +356,8 @@ void def_tables(nb::module_ &m) {
 /// The plugin's properties (powder_registry.h): what Python reads instead of its own copy
 void def_registry(nb::module_ &m) {
     m.def("materials", &materials, "Names of the built-in grain materials (property \"material\").");
+    m.def("material_densities", &material_densities,
+          "Density (g/cm^3) of each built-in material: converts mass to volume fractions.");
     m.def("material_files", &material_files,
           "Optical-constant files of each built-in material, relative to the package's folder "
           "(two files: the ordinary and extraordinary rays, averaged (2 o + e) / 3).");

@@ -109,6 +109,40 @@ def mie_albedo(index: complex, radius_um: float, wl_nm: float, radius2: float | 
     return (w1 * s1 + w2 * s2) / (w1 * e1 + w2 * e2)
 
 
+def mixture_albedo(populations: list[tuple[complex, float, float]], wl_nm: float) -> float:
+    """Mie albedo (dimensionless) of a mixture of populations ``(index n + ik, radius um, volume
+    fraction of the solid)`` at the wavelength ``wl_nm`` (nm), docs/model.md's "Several
+    materials": ``sum_j (f_j / r_j) Q_sca,j / sum_j (f_j / r_j) Q_ext,j``, each Q by miepython
+    with that population's index."""
+    num = den = 0.0
+    for index, radius, fraction in populations:
+        qext, qsca = mie_efficiencies(index, 2 * np.pi * radius / (wl_nm * 1e-3))
+        num += fraction / radius * qsca
+        den += fraction / radius * qext
+    return num / den
+
+
+def bruggeman_mixture(indices: list[complex], fractions: list[float]) -> complex:
+    """Bruggeman effective index ``sqrt(eps)`` of materials ``n + ik`` at volume fractions summing
+    to 1 (docs/model.md, "The mixture's index for tau_o"): the roots of the polynomial
+    ``sum_j f_j (eps_j - eps) prod_{k != j} (eps_k + 2 eps)`` by ``numpy.roots``, the one with
+    ``Im(eps) >= 0`` and ``Re(eps) > 0`` nearest the volume average of the ``eps_j`` (a method
+    independent of the plugin's Newton iteration)."""
+    eps = [complex(m) ** 2 for m in indices]
+    poly = np.zeros(1, dtype=complex)
+    for j, (e_j, f_j) in enumerate(zip(eps, fractions)):
+        term = np.array([f_j * -1.0, f_j * e_j], dtype=complex)  # f_j (e_j - eps)
+        for k, e_k in enumerate(eps):
+            if k != j:
+                term = np.polymul(term, np.array([2.0, e_k], dtype=complex))
+        poly = np.polyadd(poly, term)
+    roots = np.roots(poly)
+    ok = [r for r in roots if r.imag >= -1e-12 * abs(r) and r.real > 0]
+    mean = sum(f * e for f, e in zip(fractions, eps))
+    root = min(ok, key=lambda r: abs(r - mean))
+    return complex(np.sqrt(complex(root)))
+
+
 def slab_albedo(index: complex, diameter_um: float, wl_nm: float) -> float:
     """Hapke's equivalent-slab albedo (dimensionless) of a grain of size ``diameter_um`` (um,
     D = 2 r) and index ``n + ik`` (n > 1) at the wavelength ``wl_nm`` (nm), as docs/model.md:

@@ -52,6 +52,15 @@ CONTEXT = {
     "radius": {"grains": "slab"},
     "radius2": {"grains": "slab", "radius": 1.0, "fraction2": 0.3},
     "fraction2": {"grains": "slab", "radius": 1.0, "radius2": 0.1},
+    # (the other fractions 0, so that each fraction reaches 1)
+    "radius3": {"grains": "slab", "radius": 1.0, "radius2": 0.5, "fraction2": 0.0,
+                "fraction3": 0.3, "eta3": 1.6, "k3": 0.001},
+    "fraction3": {"grains": "slab", "radius": 1.0, "radius2": 0.5, "fraction2": 0.0,
+                  "radius3": 0.1, "eta3": 1.6, "k3": 0.001},
+    "radius4": {"grains": "slab", "radius": 1.0, "radius2": 0.5, "fraction2": 0.0,
+                "radius3": 0.5, "fraction3": 0.0, "fraction4": 0.3, "material4": "calcite"},
+    "fraction4": {"grains": "slab", "radius": 1.0, "radius2": 0.5, "fraction2": 0.0,
+                  "radius3": 0.5, "fraction3": 0.0, "radius4": 0.1, "material4": "calcite"},
     "agglomerate_radius": {"grains": "agglomerate"},
     "agglomerate_fill": {"grains": "agglomerate", "agglomerate_radius": 0.15},
     "eta": {"k": 0.0, "surface_fresnel": "fresnel", "amplitude_surface": 1e-3},
@@ -218,7 +227,8 @@ def test_values_that_evaluated_to_nan_or_inf_are_refused(variant, props, name):
         mi.load_dict({"type": "powder", **props})
 
 
-@pytest.mark.parametrize("name,value", [("radius", 3.0), ("radius2", 0.5), ("fraction2", 0.3)])
+@pytest.mark.parametrize("name,value", [("radius", 3.0), ("radius2", 0.5), ("fraction2", 0.3),
+                                        ("radius3", 0.5), ("fraction4", 0.3)])
 def test_albedo_with_a_grain_size_is_an_error(name, value):
     """A given albedo replaces the grains: their size is an error beside it, as the grain
     model is (it was ignored)."""
@@ -234,6 +244,12 @@ INTEGERS = {
     "thickness": (5, {}), "amplitude_surface": (0, {}), "correlation_length": (2, {}),
     "sigma": (1, {"specular": "gaussian"}), "radius": (1, {}),
     "radius2": (1, {"fraction2": 0}), "fraction2": (1, {"radius2": 0.5}),
+    "radius3": (1, {"radius2": 0.5, "fraction2": 0.2, "fraction3": 0}),
+    "fraction3": (1, {"radius2": 0.5, "fraction2": 0, "radius3": 0.5}),
+    "radius4": (1, {"radius2": 0.5, "fraction2": 0.2, "radius3": 0.5, "fraction3": 0.2,
+                    "fraction4": 0}),
+    "fraction4": (1, {"radius2": 0.5, "fraction2": 0, "radius3": 0.5, "fraction3": 0,
+                      "radius4": 0.5}),
     "agglomerate_radius": (1, {"grains": "agglomerate"}),
     "agglomerate_fill": (1, {"grains": "agglomerate", "agglomerate_radius": 0.5}),
     "wavelength": (600, {}), "eta": (2, {"k": 0.5}), "k": (0, {"eta": 2.5}),

@@ -72,12 +72,16 @@ def properties_read() -> set[str]:
                             r'\("(\w+)"', SOURCE))
     names |= set(re.findall(r'read_spectrum\(props, "(\w+)"\)', SOURCE))
     names |= set(re.findall(r'read_choice<\d+>\(props, "(\w+)"', SOURCE))
+    # the material properties of each population (read through these arrays)
+    for array in ("PopulationMaterial", "PopulationEta", "PopulationK"):
+        body = SOURCE[SOURCE.index(f"{array}[MaxPopulations] = {{"):]
+        names |= set(re.findall(r'"(\w+)"', body[:body.index("};")]))
     return names
 
 
 def test_the_table_is_parsed():
     names = [r["name"] for r in table_rows()]
-    assert names[:3] == ["amplitude_volume", "g", "extinction"] and len(names) == 13
+    assert names[:3] == ["amplitude_volume", "g", "extinction"] and len(names) == 17
 
 
 def test_doc_comment_lists_exactly_the_properties_read():

@@ -19,6 +19,13 @@ from mitsuba_powder.variants import use_variant
 #: grain model of the agglomerate properties, the other half of a complex index)
 CONTEXT = {
     "radius2": {"fraction2": 0.5}, "fraction2": {"radius2": 0.5},
+    # (the other fractions 0, so that each fraction reaches 1)
+    "radius3": {"radius2": 0.5, "fraction2": 0.2, "fraction3": 0.2},
+    "fraction3": {"radius2": 0.5, "fraction2": 0.0, "radius3": 0.5},
+    "radius4": {"radius2": 0.5, "fraction2": 0.2, "radius3": 0.5, "fraction3": 0.2,
+                "fraction4": 0.2},
+    "fraction4": {"radius2": 0.5, "fraction2": 0.0, "radius3": 0.5, "fraction3": 0.0,
+                  "radius4": 0.5},
     "agglomerate_radius": {"grains": "agglomerate"},
     "agglomerate_fill": {"grains": "agglomerate", "agglomerate_radius": 1.0},
     "eta": {"k": 0.01}, "k": {"eta": 1.5},
@@ -34,7 +41,8 @@ def _ends(interval: registry.Interval, name: str) -> list[tuple[str, float, bool
     out = []
     for side, end, closed, toward in (("lower", interval.lower, interval.lower_closed, -1),
                                       ("upper", interval.upper, interval.upper_closed, 1)):
-        if side == "lower" and name in ("radius", "radius2", "agglomerate_radius"):
+        if side == "lower" and name in ("radius", "radius2", "radius3", "radius4",
+                                        "agglomerate_radius"):
             out += [("lower inside", GRAIN_SIZE_INSIDE, True), ("lower outside", end, False)]
             continue
         if math.isinf(end):

@@ -180,3 +180,102 @@ class GrainOptics:
             if derivatives:
                 deriv[i] = d
         return rho, deriv
+
+
+#: how the fractions of a mixture are given (:func:`volume_fractions`)
+FRACTION_BASES = ("mass", "volume")
+
+
+def volume_fractions(parts: list[tuple[str, float]], by: str = "volume") -> list[float]:
+    """Volume fractions of the solid of a mixture's populations (docs/model.md, "Several
+    materials"), from ``(material, fraction)`` pairs given by ``mass`` or by ``volume``.
+
+    A mass fraction ``w_j`` of a material of density ``d_j`` (g/cm^3, :data:`registry.DENSITIES`,
+    measurements/README.md) occupies the volume fraction ``(w_j / d_j) / sum_k (w_k / d_k)``.
+    The fractions must be in [0, 1] and sum to 1 (to 1e-6).
+
+    Raises:
+        ValueError: ``by`` not ``mass`` or ``volume``, a fraction out of range, fractions not
+            summing to 1, or (by mass) a material without a known density (a YAML file or
+            ``eta``/``k``: give volume fractions).
+    """
+    if by not in FRACTION_BASES:
+        raise ValueError(f"by = {by!r} is not valid; valid values are {', '.join(FRACTION_BASES)}")
+    if not 1 <= len(parts) <= registry.MAX_POPULATIONS:
+        raise ValueError(f"a mixture of {len(parts)} populations; valid range is "
+                         f"[1, {registry.MAX_POPULATIONS}]")
+    for material, f in parts:
+        if not (isinstance(f, (int, float)) and math.isfinite(f) and 0.0 <= f <= 1.0):
+            raise ValueError(f"the {by} fraction of {material} = {f!r} is out of range; valid "
+                             "range is [0, 1]")
+    total = sum(f for _, f in parts)
+    if abs(total - 1.0) > 1e-6:
+        raise ValueError(f"the {by} fractions {', '.join(f'{m}: {f:g}' for m, f in parts)} sum "
+                         f"to {total:g}; they must sum to 1")
+    if by == "volume":
+        return [float(f) for _, f in parts]
+    unknown = [m for m, _ in parts if m not in registry.DENSITIES]
+    if unknown:
+        raise ValueError(f"no density for material {unknown[0]!r} (mass fractions need one); "
+                         f"materials with a density: {', '.join(registry.DENSITIES)}; or give "
+                         "volume fractions")
+    volumes = [f / registry.DENSITIES[m] for m, f in parts]
+    return [v / sum(volumes) for v in volumes]
+
+
+def mixture_properties(parts: list[tuple[str, float, float]], by: str = "volume") -> dict:
+    """The ``powder`` properties of a mixture of ``(material, fraction, radius um)``
+    populations (fractions by ``mass`` or ``volume``, :func:`volume_fractions`): ``material``
+    and ``radius`` for the first, ``material{j}``, ``radius{j}``, ``fraction{j}`` (volume) for
+    the others.
+
+    Raises:
+        ValueError: as :func:`volume_fractions`, or a radius that is not a positive number.
+    """
+    volumes = volume_fractions([(m, f) for m, f, _ in parts], by)
+    props: dict = {}
+    for j, ((material, _, radius), f) in enumerate(zip(parts, volumes), start=1):
+        if not (isinstance(radius, (int, float)) and math.isfinite(radius) and radius > 0):
+            raise ValueError(f"the radius of {material} = {radius!r} um is out of range; valid "
+                             "range is (0, inf)")
+        suffix = "" if j == 1 else str(j)
+        props[f"material{suffix}"] = material
+        props[f"radius{suffix}"] = float(radius)
+        if j > 1:
+            props[f"fraction{j}"] = float(f)
+    return props
+
+
+def mixture_albedo(properties: dict, wavelengths_nm) -> tuple[np.ndarray, np.ndarray]:
+    """(rho, tau_o) per wavelength of the grain populations of ``powder`` properties (one to
+    four: ``material``/``eta``/``k``, ``radius`` and ``material{j}``/``eta{j}``/``k{j}``,
+    ``radius{j}``, ``fraction{j}``), with the plugin's own double-precision code: rho from
+    ``_optics.mixture_albedo``, tau_o from the Fresnel reflectance of the mixture's Bruggeman
+    index (docs/model.md, "The mixture's index for tau_o").
+
+    Raises:
+        ValueError: a material, radius or fraction the plugin refuses (its message).
+    """
+    wls = [float(w) for w in np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))]
+    first = {k: properties[k] for k in ("material", "eta", "k") if k in properties}
+    optics = [GrainOptics({**first, "grains": properties.get("grains", "sphere")})]
+    populations = [(float(properties.get("radius", registry.DEFAULTS["radius"])), None)]
+    for j in range(2, registry.MAX_POPULATIONS + 1):
+        if f"radius{j}" not in properties:
+            break
+        own = {k: properties[f"{k}{j}"] for k in ("material", "eta", "k")
+               if f"{k}{j}" in properties}
+        optics.append(GrainOptics(own) if own else optics[0])
+        populations.append((float(properties[f"radius{j}"]), float(properties[f"fraction{j}"])))
+    indices = [[complex(m) for m in o.index(wls)] for o in optics]
+    try:
+        rho, _ = _optics.mixture_albedo(
+            properties.get("grains", "sphere"), wls,
+            [(r, f, idx) for (r, f), idx in zip(populations, indices)], False)
+    except RuntimeError as error:
+        raise ValueError(str(error).removeprefix("powder: ")) from None
+    fractions = [1.0 - sum(f for _, f in populations[1:])] + [f for _, f in populations[1:]]
+    fractions[0] = max(fractions[0], 0.0)
+    tau = [_optics.tau_o_fresnel(_optics.bruggeman_mixture(
+        [idx[i] for idx in indices], fractions).real) for i in range(len(wls))]
+    return np.asarray(rho), np.asarray(tau)

@@ -10,7 +10,9 @@ from ..readers import read_json
 #: Every property the ``powder`` plugin's constructor reads (its doc comment's parameter table;
 #: tests/plugin/test_params_doc.py checks that the two lists agree)
 POWDER_PROPERTIES = (
-    "amplitude_volume", "g", "extinction", "radius", "radius2", "fraction2", "grains",
+    "amplitude_volume", "g", "extinction", "radius", "radius2", "fraction2", "radius3",
+    "fraction3", "radius4", "fraction4", "material2", "material3", "material4", "eta2", "k2",
+    "eta3", "k3", "eta4", "k4", "grains",
     "agglomerate_radius", "agglomerate_fill", "mixing", "material", "eta", "k", "albedo",
     "tau_o", "thickness", "amplitude_surface", "correlation_length", "specular",
     "surface_fresnel", "sigma",

@@ -17,9 +17,10 @@ import numpy as np
 from .. import _optics
 from .._checks import interval_text, out_of_range
 
-__all__ = ["ALBEDO_INTERVAL", "DEFAULTS", "GRAIN_MODELS", "GRAIN_SIZES", "GRAIN_VARIABLES",
-           "INTERVALS", "Interval", "MATERIALS", "RANGES", "check_grain_model", "check_value",
-           "grain_size", "interval", "material_files", "second_population"]
+__all__ = ["ALBEDO_INTERVAL", "DEFAULTS", "DENSITIES", "GRAIN_MODELS", "GRAIN_SIZES",
+           "GRAIN_VARIABLES", "INTERVALS", "Interval", "MATERIALS", "MAX_POPULATIONS", "RANGES",
+           "check_grain_model", "check_value", "grain_size", "interval", "material_files",
+           "second_population"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,11 @@ def check_value(name: str, value, what: str = "") -> float:
 
 #: names of the built-in grain materials (the ``material`` property)
 MATERIALS: tuple[str, ...] = tuple(_optics.materials())
+#: {built-in material: density in g/cm^3} (mass to volume fractions; measurements/README.md)
+DENSITIES: dict[str, float] = dict(_optics.material_densities())
+#: the most grain populations of a powder (population j = 2..4: radius{j}, fraction{j},
+#: material{j} or eta{j} and k{j}; docs/model.md, "Several materials")
+MAX_POPULATIONS = 4
 #: {grain model: {"size", "allowed", "required", "two_populations"}} (the ``grains`` property)
 GRAIN_MODELS: dict[str, dict] = {name: dict(rules)
                                  for name, rules in _optics.grain_models().items()}
