@@ -299,3 +299,43 @@ def test_mixture_properties_load_and_match_the_python_albedo():
     np.testing.assert_allclose(albedo_at(bsdf), rho, rtol=1e-5)
     got_tau = np.array(bsdf.eval_attribute("tau_o", mi.SurfaceInteraction3f())).ravel()
     np.testing.assert_allclose(got_tau, tau, rtol=1e-5)
+
+
+# ------------------------------------------------------------ colour of a mixture
+
+OCHRE = "hematite:5%:0.1um,kaolinite:95%:1um"
+
+
+def test_parse_mix():
+    assert pg.parse_mix(OCHRE) == [("hematite", 0.05, 0.1), ("kaolinite", 0.95, 1.0)]
+    assert pg.parse_mix("calcite:0.5:500nm, quartz:0.5:2") == [("calcite", 0.5, 0.5),
+                                                               ("quartz", 0.5, 2.0)]
+    for bad in ("hematite:5%", "hematite:five:0.1um", "hematite:5%:big"):
+        with pytest.raises(ValueError, match="mixture item"):
+            pg.parse_mix(bad)
+
+
+def test_mixture_colour_by_mass_is_the_volume_fractions_of_the_densities():
+    from mitsuba_powder.plugin.appearance import mixture_colour, powder_colour
+
+    by_mass = mixture_colour(OCHRE, by="mass", samples=64)
+    f = pg.volume_fractions([("hematite", 0.05), ("kaolinite", 0.95)], by="mass")
+    direct = powder_colour(0.1, material="hematite", radius2=1.0, fraction2=f[1],
+                           material2="kaolinite", samples=64)
+    np.testing.assert_allclose(by_mass.reflectance, direct.reflectance, rtol=1e-6)
+    by_volume = mixture_colour(OCHRE, by="volume", samples=64)
+    # 5 % by mass of the denser hematite is 2.6 % by volume: a paler, less red ochre
+    assert by_volume.lab[1] > by_mass.lab[1] and by_volume.lab[0] < by_mass.lab[0]
+
+
+def test_cli_colour_mix(capsys):
+    from mitsuba_powder.cli import main
+
+    assert main(["colour", "--mix", OCHRE, "--by", "mass", "--samples", "64"]) == 0
+    out = capsys.readouterr().out
+    assert "hematite 0.05 -> 0.02564" in out and "kaolinite 0.95 -> 0.9744" in out, out
+    assert "CIELAB" in out
+    assert main(["colour", "--mix", OCHRE, "--radius", "0.2"]) == 2
+    assert "--radius cannot be given with it" in capsys.readouterr().err
+    assert main(["colour", "--mix", "hematite:5%:0.1um,kaolinite:90%:1um"]) == 2
+    assert "sum to 0.95; they must sum to 1" in capsys.readouterr().err

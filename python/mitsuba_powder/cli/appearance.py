@@ -12,10 +12,22 @@ from .common import _parse_define, _value
 def _cmd_colour(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..plugin.appearance import powder_colour
+    from ..plugin.appearance import mixture_colour, powder_colour
+    from ..plugin.grains import parse_mix, volume_fractions
 
+    if args.mix is not None:
+        given = [f"--{n.replace('_', '-')}" for n in ("radius", "radius2", "fraction2",
+                                                     "material", "agglomerate_radius")
+                 if getattr(args, n) is not None]
+        if given or args.grains == "agglomerate":
+            raise ValueError(f"--mix describes the grains; {', '.join(given) or '--grains'} "
+                             "cannot be given with it")
     if (args.radius2 is None) != (args.fraction2 is None):
         raise ValueError("give both --radius2 and --fraction2, or neither")
+    if args.radius is None and args.mix is None:
+        args.radius = float(registry.DEFAULTS["radius"])
+    if args.material is None:
+        args.material = str(registry.DEFAULTS["material"])
     model = {}
     if args.grains != registry.DEFAULTS["grains"]:
         model["grains"] = args.grains
@@ -25,16 +37,24 @@ def _cmd_colour(args: argparse.Namespace) -> int:
         model["agglomerate_fill"] = args.agglomerate_fill
     if args.mixing is not None:
         model["mixing"] = args.mixing
-    c = powder_colour(args.radius, radius2=args.radius2, fraction2=args.fraction2,
-                      material=args.material, samples=args.samples, **model)
-    grains = f"{args.grains} grains, radius {args.radius:g} um"
+    if args.mix is not None:
+        parts = parse_mix(args.mix)
+        volumes = volume_fractions([(m, f) for m, f, _ in parts], args.by)
+        c = mixture_colour(parts, by=args.by, samples=args.samples, **model)
+        print(f"mixture ({args.by} fractions -> volume fractions of the solid): " + ", ".join(
+            f"{m} {f:.4g} -> {v:.4g}, radius {r:g} um" for (m, f, r), v in zip(parts, volumes)))
+        grains = f"{args.grains} grains"
+    else:
+        c = powder_colour(args.radius, radius2=args.radius2, fraction2=args.fraction2,
+                          material=args.material, samples=args.samples, **model)
+        grains = f"{args.material}, {args.grains} grains, radius {args.radius:g} um"
     if args.radius2 is not None:
         grains += f" + radius2 {args.radius2:g} um (volume fraction {args.fraction2:g})"
     if args.grains == "agglomerate":
         grains += (f" (crystallites) in agglomerates of radius {args.agglomerate_radius:g} um, "
                    f"fill {c.properties.get('agglomerate_fill', 0.5):g}, "
                    f"{c.properties.get('mixing', 'bruggeman')}")
-    print(f"{args.material}, {grains}; plugin defaults otherwise")
+    print(f"{grains}; plugin defaults otherwise")
     print(f"{'nm':>5s} {'albedo':>8s} {'Q_ext':>9s} {'Q_sca':>9s} {'tau_o':>7s} {'R(0/d)':>8s}")
     step = max(1, len(c.wavelengths_nm) // 12)
     for i in range(0, len(c.wavelengths_nm), step):

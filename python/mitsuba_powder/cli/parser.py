@@ -185,13 +185,14 @@ def _add_albedo_parser(sub: argparse._SubParsersAction) -> None:
 def _add_colour_parser(sub: argparse._SubParsersAction) -> None:
     """The ``colour`` command."""
     p = sub.add_parser("colour", help="albedo, tau_o and colour of a powder from its grains")
-    p.add_argument("--radius", type=float, default=float(registry.DEFAULTS["radius"]),
-                   help="grain radius, um")
+    p.add_argument("--radius", type=float, default=None,
+                   help=f"grain radius, um (default {registry.DEFAULTS['radius']:g})")
     p.add_argument("--radius2", type=float, default=None, help="second population radius, um")
     p.add_argument("--fraction2", type=float, default=None,
                    help="volume fraction of the second population")
-    p.add_argument("--material", default=registry.DEFAULTS["material"],
-                   help=f"{', '.join(registry.MATERIALS)} or a refractiveindex.info YAML file")
+    p.add_argument("--material", default=None,
+                   help=f"{', '.join(registry.MATERIALS)} or a refractiveindex.info YAML file "
+                        f"(default {registry.DEFAULTS['material']})")
     p.add_argument("--grains", default=registry.DEFAULTS["grains"],
                    choices=list(registry.GRAIN_MODELS),
                    help="grain model (docs/powder.md, Grain models)")
@@ -202,6 +203,13 @@ def _add_colour_parser(sub: argparse._SubParsersAction) -> None:
                         f"{registry.DEFAULTS['agglomerate_fill']:g})")
     p.add_argument("--mixing", default=None, choices=["bruggeman", "maxwell_garnett"],
                    help="effective-medium rule of an agglomerate (default bruggeman)")
+    p.add_argument("--mix", default=None,
+                   help="a pigment mixture instead of --material/--radius/--radius2/"
+                        "--fraction2: material:fraction:radius,... (up to 4), e.g. "
+                        "hematite:5%%:0.1um,kaolinite:95%%:1um; fractions sum to 1")
+    p.add_argument("--by", default="volume", choices=["mass", "volume"],
+                   help="how the --mix fractions are given (mass: converted with the "
+                        "materials' densities; default volume)")
     p.add_argument("--samples", type=int, default=4096, help="quadrature nodes")
     p.set_defaults(func=_cmd_colour)
 

@@ -236,6 +236,33 @@ def powder_colour(
 _PANELS = (0.0, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 0.7, 1.1, np.pi / 2)
 
 
+def mixture_colour(mix, by: str = "volume", wavelengths_nm: np.ndarray = WAVELENGTHS_NM,
+                   samples: int = 4096, **properties) -> PowderColour:
+    """:func:`powder_colour` of a pigment mixture (docs/model.md, "Several materials").
+
+    Args:
+        mix: ``(material, fraction, radius um)`` populations (one to four; built-in materials or
+            YAML files), or the same as a string ``hematite:5%:0.1um,kaolinite:95%:1um``
+            (:func:`~mitsuba_powder.plugin.grains.parse_mix`).
+        by: ``"mass"`` or ``"volume"``: how the fractions are given; mass fractions are
+            converted to volume fractions of the solid with the materials' densities
+            (:func:`~mitsuba_powder.plugin.grains.volume_fractions`).
+        wavelengths_nm, samples, **properties: as :func:`powder_colour` (no grain properties).
+
+    Raises:
+        ValueError: a malformed mixture, fractions not summing to 1, no density for a mass
+            fraction; RuntimeError: the plugin rejected a property.
+    """
+    from .grains import mixture_properties, parse_mix
+
+    parts = parse_mix(mix) if isinstance(mix, str) else list(mix)
+    props = mixture_properties(parts, by)
+    clash = [k for k in props if k in properties]
+    if clash:
+        raise ValueError(f"{', '.join(clash)} come from the mixture; give them there")
+    return powder_colour(wavelengths_nm=wavelengths_nm, samples=samples, **props, **properties)
+
+
 def hemispherical_nodes(order: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """Nodes theta_o (degrees) and weights of the directional-hemispherical reflectance at
     normal incidence: ``R = sum_k w_k BRF(0, theta_k)`` for

@@ -279,3 +279,31 @@ def mixture_albedo(properties: dict, wavelengths_nm) -> tuple[np.ndarray, np.nda
     tau = [_optics.tau_o_fresnel(_optics.bruggeman_mixture(
         [idx[i] for idx in indices], fractions).real) for i in range(len(wls))]
     return np.asarray(rho), np.asarray(tau)
+
+
+def parse_mix(spec: str) -> list[tuple[str, float, float]]:
+    """``(material, fraction, radius um)`` populations of a mixture written
+    ``material:fraction:radius,...``, e.g. ``hematite:5%:0.1um,kaolinite:95%:1um``: a fraction
+    as a number in [0, 1] or a percentage, a radius in um (``um`` or no unit) or ``nm``.
+
+    Raises:
+        ValueError: an item that is not three fields, a fraction or radius that is not a
+            number (the item is named).
+    """
+    parts = []
+    for item in (s.strip() for s in spec.split(",")):
+        fields = [f.strip() for f in item.split(":")]
+        if len(fields) != 3 or not all(fields):
+            raise ValueError(f"mixture item {item!r} is not material:fraction:radius (e.g. "
+                             "hematite:5%:0.1um)")
+        material, fraction, radius = fields
+        try:
+            f = float(fraction[:-1]) / 100.0 if fraction.endswith("%") else float(fraction)
+            scale = 1e-3 if radius.endswith("nm") else 1.0
+            r = float(radius.removesuffix("nm").removesuffix("um")) * scale
+        except ValueError:
+            raise ValueError(f"mixture item {item!r}: the fraction ({fraction!r}: a number or "
+                             f"a percentage) or the radius ({radius!r}: um or nm) is not a "
+                             "number") from None
+        parts.append((material, f, r))
+    return parts
