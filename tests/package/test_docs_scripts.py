@@ -107,6 +107,7 @@ def test_rti_gain_trend_script(tmp_path):
 
 
 @pytest.mark.parametrize("script", ["showcase.py", "grain_colour.py", "hematite_colour.py",
+                                    "ochre_series.py",
                                     "gonio_validation.py", "ptfe_fits.py",
                                     "ipag_conventions.py", "rti_figure.py"])
 def test_docs_scripts_do_not_write_the_committed_docs_by_default(script):
