@@ -339,3 +339,18 @@ def test_cli_colour_mix(capsys):
     assert "--radius cannot be given with it" in capsys.readouterr().err
     assert main(["colour", "--mix", "hematite:5%:0.1um,kaolinite:90%:1um"]) == 2
     assert "sum to 0.95; they must sum to 1" in capsys.readouterr().err
+
+
+def test_ochre_series_script_runs_in_quick_mode(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run([sys.executable, str(root / "docs" / "scripts" / "ochre_series.py"),
+                           "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (tmp_path / "figures" / "ochre_series.png").stat().st_size > 10_000
+    table = (tmp_path / "ochre_table.md").read_text()
+    assert "| kaolinite | 0.05 | 1 % | 0.50 % |" in table and "| calcite |" in table
