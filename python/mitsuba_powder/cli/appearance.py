@@ -126,3 +126,71 @@ def _cmd_albedo(args: argparse.Namespace) -> int:
           f"albedo {albedo.min():.4f}-{albedo.max():.4f}")
     print(f"wrote {args.out} (use it as <spectrum name=\"albedo\" filename=\"{args.out}\"/>)")
     return 0
+
+
+def _read_albedo_csv(path: str) -> tuple:
+    """(wavelengths nm, albedo, sigma) from a CSV of three columns (an optional header line;
+    ``#`` lines are comments)."""
+    import csv
+    from pathlib import Path
+
+    import numpy as np
+
+    from ..outputs import note_input
+    from ..readers import read_text
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    note_input(p)
+    rows = []
+    for lineno, row in enumerate(csv.reader(read_text(p, "ALBEDO.csv").splitlines()), start=1):
+        if not row or row[0].strip().startswith("#"):
+            continue
+        if len(row) != 3:
+            raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 3 "
+                             "(wavelength in nm, albedo, its standard uncertainty)")
+        try:
+            rows.append([float(v) for v in row])
+        except ValueError:
+            if not rows:  # a header line
+                continue
+            raise ValueError(f"{path}, line {lineno}: {row!r} is not three numbers") from None
+    if not rows:
+        raise ValueError(f"{path}: no data rows (wavelength nm, albedo, sigma)")
+    a = np.array(rows)
+    return a[:, 0], a[:, 1], a[:, 2]
+
+
+def _cmd_unmix(args: argparse.Namespace) -> int:
+    import json
+
+    from ..fitting.unmix import unmix
+    from ..outputs import check_finite_json, output_file
+    from ..plugin.grains import parse_mix
+
+    wl, albedo, sigma = _read_albedo_csv(args.albedo)
+    parts = parse_mix(args.mix)
+    out = output_file(args.json, "--json") if args.json else None
+    r = unmix(wl, albedo, sigma, parts, free_radii=args.free_radii, by=args.by)
+    print(f"unmixing {args.albedo}: {len(wl)} wavelengths, chi2 {r.chi2:.4g} for {r.dof} "
+          "degrees of freedom")
+    print(f"{'material':>12s} {'volume':>8s} {'+/-':>7s} {'mass':>8s} {'radius um':>10s} "
+          f"{'+/-':>7s}")
+    for j, m in enumerate(r.materials):
+        mass = "-" if r.mass_fractions is None else f"{r.mass_fractions[j]:.4f}"
+        print(f"{m:>12s} {r.fractions[j]:8.4f} {r.fraction_errors[j]:7.4f} {mass:>8s} "
+              f"{r.radii[j]:10.4g} {r.radius_errors[j]:7.2g}")
+    for w in r.warnings:
+        print(f"warning: {w}")
+    if out is not None:
+        doc = {"materials": r.materials, "volume_fractions": r.fractions.tolist(),
+               "volume_fraction_errors": r.fraction_errors.tolist(),
+               "mass_fractions": None if r.mass_fractions is None else
+               r.mass_fractions.tolist(), "radii_um": r.radii.tolist(),
+               "radius_errors_um": r.radius_errors.tolist(), "chi2": r.chi2, "dof": r.dof,
+               "warnings": r.warnings}
+        check_finite_json(doc, str(out))
+        out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {out}")
+    return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..plugin import registry
-from .appearance import _cmd_albedo, _cmd_colour
+from .appearance import _cmd_albedo, _cmd_colour, _cmd_unmix
 from .fitting import _cmd_compare_models, _cmd_fit, _cmd_simulate
 from .rendering import _cmd_compare_photo, _cmd_info, _cmd_render, _cmd_render_gonio
 from .rti import _cmd_compare_maps, _cmd_fit_maps, _cmd_relight
@@ -180,6 +180,23 @@ def _add_albedo_parser(sub: argparse._SubParsersAction) -> None:
     _add_set_option(p, "another plugin property, e.g. --set extinction=0.5 (repeatable)")
     p.add_argument("--out", required=True, help="output spectrum file (.spd)")
     p.set_defaults(func=_cmd_albedo)
+
+
+def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``unmix`` command."""
+    p = sub.add_parser("unmix", help="fractions of a pigment mixture from an albedo spectrum "
+                                     "(docs/fitting.md, Unmixing)")
+    p.add_argument("albedo", help="CSV: wavelength (nm), single-scattering albedo, its "
+                                  "standard uncertainty (e.g. from fit with the albedo free)")
+    p.add_argument("--mix", required=True,
+                   help="the materials, start fractions and radii: material:fraction:radius,... "
+                        "(2 to 4), e.g. kaolinite:80%%:1um,hematite:10%%:0.1um,"
+                        "magnetite:10%%:0.3um; population 1 (the first) must be present")
+    p.add_argument("--by", default="volume", choices=["mass", "volume"],
+                   help="how the --mix start fractions are given (default volume)")
+    p.add_argument("--free-radii", action="store_true", help="fit the radii too")
+    p.add_argument("--json", default=None, help="write the result as JSON")
+    p.set_defaults(func=_cmd_unmix)
 
 
 def _add_colour_parser(sub: argparse._SubParsersAction) -> None:
@@ -412,6 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render_parser(sub)
     _add_albedo_parser(sub)
     _add_colour_parser(sub)
+    _add_unmix_parser(sub)
     _add_fit_parser(sub)
     _add_simulate_parser(sub)
     _add_compare_models_parser(sub)
