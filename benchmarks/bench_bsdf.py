@@ -41,6 +41,16 @@ BSDFS = {
                         "sigma": 0.1},
     "powder Mie albedo": {"type": "powder", "radius": 0.05, "extinction": 1.0,
                           "amplitude_surface": 1e-3},
+    # a pigment mixture of four materials (docs/model.md, "Several materials"), and one
+    # population as bright as it (the cost follows the albedo: bright powders take the
+    # series form of the coherent term)
+    "powder Mie 4 materials": {"type": "powder", "radius": 0.05, "extinction": 1.0,
+                               "amplitude_surface": 1e-3, "radius2": 0.2, "fraction2": 0.2,
+                               "material2": "calcite", "radius3": 1.0, "fraction3": 0.3,
+                               "material3": "kaolinite", "radius4": 0.3, "fraction4": 0.1,
+                               "material4": "magnetite"},
+    "powder Mie white": {"type": "powder", "radius": 1.0, "material": "kaolinite",
+                         "extinction": 1.0, "amplitude_surface": 1e-3},
     "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}},
     "roughplastic": {"type": "roughplastic"},
     "principled": {"type": "principled"},
