@@ -14,7 +14,7 @@ import numpy as np
 from ..io.measurements import Measurements
 from ..plugin import registry
 from ..plugin.brf import BatchBRF, engine_properties
-from ..plugin.grains import GRAIN_VARIABLES, GrainOptics
+from ..plugin.grains import GRAIN_VARIABLES, POPULATION_MATERIALS, GrainOptics
 from .variables import FITTABLE, REGIMES, VariableLayout
 
 #: The plugin's default radius (um), used when neither fitted nor given
@@ -36,10 +36,20 @@ def _check_free(free: list[str], fixed: dict) -> None:
     clash = [n for n in free if n in fixed]
     if clash:
         raise ValueError(f"{clash} are both free and fixed (--set)")
-    if ("radius2" in free or "fraction2" in free) and not (
-            ("radius2" in free or "radius2" in fixed) and
-            ("fraction2" in free or "fraction2" in fixed)):
-        raise ValueError("a second population needs radius2 and fraction2 (free or fixed)")
+    given = set(free) | set(fixed)
+    for j in range(2, registry.MAX_POPULATIONS + 1):
+        pair = (f"radius{j}", f"fraction{j}")
+        if any(n in given for n in pair) and not all(n in given for n in pair):
+            raise ValueError(f"population {j} needs radius{j} and fraction{j} (free or fixed)")
+        if j > 2 and f"radius{j}" in given and f"radius{j - 1}" not in given:
+            raise ValueError(f"population {j} needs population {j - 1} (radius{j - 1}, "
+                             f"fraction{j - 1}): populations are numbered 2, 3, 4 without gaps")
+    mixed = any(k in fixed for k in POPULATION_MATERIALS)
+    free_fractions = [n for n in free if n.startswith("fraction")]
+    if mixed and free_fractions and "tau_o" not in given:
+        raise ValueError(f"{free_fractions} are free and the populations are of different "
+                         "materials: tau_o (from the mixture's Bruggeman index) would change "
+                         "with them; give tau_o or fit it (--set tau_o=... or --free tau_o)")
     specular = fixed.get("specular", "harvey_shack")
     unused = {"harvey_shack": "sigma", "gaussian": "correlation_length"}.get(specular)
     if unused in free:
@@ -128,7 +138,7 @@ class GrainAlbedo:
         return tuple(out)
 
     def albedo(self, x: np.ndarray, derivatives: bool) -> tuple[np.ndarray, np.ndarray]:
-        """rho (B, W) and d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 5; zero unless
+        """rho (B, W) and d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 9; zero unless
         ``derivatives`` and some grain variable is free)."""
         b, w = len(x), len(self.wavelengths)
         grain = self.grain_values(x)
@@ -146,9 +156,12 @@ class GrainAlbedo:
                 missing.append((i, key))
         if missing:
             idx = np.array([i for i, _ in missing])
-            r1, r2, f2, ra, fill = (None if v is None else v[idx] for v in grain)
+            r1, r2, f2, ra, fill, r3, f3, r4, f4 = (None if v is None else v[idx]
+                                                    for v in grain)
             values, d = self.grains.albedo(self.wavelengths, r1, r2, f2, derivatives=need,
-                                           agglomerate_radius=ra, agglomerate_fill=fill)
+                                           agglomerate_radius=ra, agglomerate_fill=fill,
+                                           radius3=r3, fraction3=f3, radius4=r4,
+                                           fraction4=f4)
             for k, (i, key) in enumerate(missing):
                 rho[i] = values[k]
                 if d is not None:
@@ -205,7 +218,9 @@ class Problem:
                                            self.wavelengths)
         self.tau_o = (np.full(len(self.wavelengths), float(self.fixed["tau_o"]))
                       if "tau_o" in self.fixed else
-                      None if "tau_o" in self.free else self.grains.tau_o(self.wavelengths))
+                      None if "tau_o" in self.free else self.grains.tau_o(
+                          self.wavelengths, {k: v for k, v in self.fixed.items()
+                                             if k.startswith("fraction")}))
         # False while the global phase holds the grains: no Mie derivatives needed
         self.grain_derivatives = True
         self._engines: dict[int, BatchBRF] = {}

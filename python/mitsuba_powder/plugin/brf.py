@@ -83,7 +83,9 @@ _KEEP_EDGES = dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput
 #: Plugin properties that describe the grains: :class:`BatchBRF` takes the albedo and tau_o
 #: they give as numbers (see :mod:`mitsuba_powder.plugin.grains`)
 GRAIN_PROPERTIES = ("radius", "radius2", "fraction2", "grains", "agglomerate_radius",
-                    "agglomerate_fill", "mixing", "material", "eta", "k")
+                    "agglomerate_fill", "mixing", "material", "eta", "k", "radius3",
+                    "fraction3", "radius4", "fraction4") + tuple(
+    f"{k}{j}" for j in (2, 3, 4) for k in ("material", "eta", "k"))
 #: The grain material's index, which the surface term reads with surface_fresnel = "fresnel"
 INDEX_PROPERTIES = ("material", "eta", "k")
 

@@ -34,8 +34,11 @@ GRAIN_MODELS = tuple(registry.GRAIN_MODELS)
 MIXING_RULES = ("bruggeman", "maxwell_garnett")
 
 #: The fittable grain properties, in the order of the derivative columns of
-#: :meth:`GrainOptics.albedo` (and of ``_optics.albedo_table``)
-GRAIN_VARIABLES = registry.GRAIN_VARIABLES
+#: :meth:`GrainOptics.albedo` (``_optics.albedo_table``'s, then populations 3 and 4)
+GRAIN_VARIABLES = registry.GRAIN_VARIABLES + ("radius3", "fraction3", "radius4", "fraction4")
+#: The material properties of populations 2..4 (docs/model.md, "Several materials")
+POPULATION_MATERIALS = tuple(f"{k}{j}" for j in range(2, registry.MAX_POPULATIONS + 1)
+                             for k in ("material", "eta", "k"))
 
 #: The plugin's default ``agglomerate_fill``
 DEFAULT_FILL = float(registry.DEFAULTS["agglomerate_fill"])
@@ -58,6 +61,13 @@ class GrainOptics:
     """
 
     def __init__(self, properties: dict):
+        # populations 2..4 of their own materials (a pigment mixture)
+        self.population_optics: dict[int, GrainOptics] = {}
+        for j in range(2, registry.MAX_POPULATIONS + 1):
+            own = {k: properties[f"{k}{j}"] for k in ("material", "eta", "k")
+                   if f"{k}{j}" in properties}
+            if own:
+                self.population_optics[j] = GrainOptics(own)
         self.grains = properties.get("grains", registry.DEFAULTS["grains"])
         self.mixing = properties.get("mixing", registry.DEFAULTS["mixing"])
         for name, value, valid in (("grains", self.grains, GRAIN_MODELS),
@@ -119,19 +129,79 @@ class GrainOptics:
                              f"{self.source}, which cover {wl[0] * 1e3:g}-{wl[-1] * 1e3:g} nm")
         return np.interp(wl_um, wl, n) + 1j * np.interp(wl_um, wl, k)
 
-    def tau_o(self, wavelengths_nm: np.ndarray) -> np.ndarray:
-        """Extrapolation ratio from the Fresnel reflectance at Re(index), per wavelength."""
-        return np.array([_optics.tau_o_fresnel(float(m.real))
-                         for m in self.index(wavelengths_nm)])
+    def tau_o(self, wavelengths_nm: np.ndarray, fractions: dict | None = None) -> np.ndarray:
+        """Extrapolation ratio from the Fresnel reflectance at Re(index), per wavelength; for
+        populations of their own materials, of the mixture's Bruggeman index at the volume
+        ``fractions`` ({"fraction2": ..., ...}; docs/model.md, "The mixture's index for
+        tau_o").
+
+        Raises:
+            ValueError: a mixture without the fractions of its populations.
+        """
+        if not self.population_optics:
+            return np.array([_optics.tau_o_fresnel(float(m.real))
+                             for m in self.index(wavelengths_nm)])
+        fractions = fractions or {}
+        last = max(self.population_optics)
+        missing = [f"fraction{j}" for j in range(2, last + 1) if f"fraction{j}" not in fractions]
+        if missing:
+            raise ValueError(f"tau_o of a mixture needs {', '.join(missing)}")
+        f = [float(fractions[f"fraction{j}"]) for j in range(2, last + 1)]
+        f = [max(0.0, 1.0 - sum(f))] + f
+        f = [v / sum(f) for v in f]
+        indices = [self.index(wavelengths_nm)] + [
+            self.population_optics.get(j, self).index(wavelengths_nm) for j in range(2, last + 1)]
+        return np.array([_optics.tau_o_fresnel(_optics.bruggeman_mixture(
+            [complex(idx[i]) for idx in indices], f).real) for i in range(len(indices[0]))])
+
+    def mixture(self, wls: list[float], radius: np.ndarray, others: list,
+                derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """rho (B, W) and d rho / d(:data:`GRAIN_VARIABLES`) of a mixture: population 1 of this
+        material and radii ``radius``, ``others`` the (radii, fractions) of populations 2..4 (None
+        where absent), each of its own material or this one."""
+        if self.grains == "agglomerate":
+            raise ValueError('grains = "agglomerate" has one population')
+        present = [(j + 2, r, f) for j, (r, f) in enumerate(others) if r is not None]
+        for j, _, f in present:
+            if f is None:
+                raise ValueError(f"population {j} needs radius{j} and fraction{j}")
+        if [j for j, _, _ in present] != list(range(2, 2 + len(present))):
+            raise ValueError("populations are numbered 2, 3, 4 without gaps")
+        indices = [[complex(m) for m in self.index(wls)]] + [
+            [complex(m) for m in self.population_optics.get(j, self).index(wls)]
+            for j, _, _ in present]
+        b = len(radius)
+        rho = np.empty((b, len(wls)))
+        deriv = np.zeros((b, len(wls), len(GRAIN_VARIABLES))) if derivatives else None
+        columns = [GRAIN_VARIABLES.index("radius")]
+        for j, _, _ in present:
+            columns += [GRAIN_VARIABLES.index(f"radius{j}"), GRAIN_VARIABLES.index(f"fraction{j}")]
+        for i in range(b):
+            fr = np.array([float(fs[i]) for _, _, fs in present])
+            if fr.sum() > 1.0:
+                fr = fr / fr.sum()
+            pops = [(float(radius[i]), None, indices[0])] + [
+                (float(r[i]), float(fj), idx)
+                for (_, r, _), fj, idx in zip(present, fr, indices[1:])]
+            try:
+                values, d = _optics.mixture_albedo(self.grains, wls, pops, derivatives)
+            except RuntimeError as error:
+                raise ValueError(str(error).removeprefix("powder: ")) from None
+            rho[i] = values
+            if derivatives:
+                deriv[i][:, columns] = np.asarray(d)
+        return rho, deriv
 
     def albedo(self, wavelengths_nm: np.ndarray, radius: np.ndarray,
                radius2: np.ndarray | None = None, fraction2: np.ndarray | None = None,
                derivatives: bool = False,
                agglomerate_radius: np.ndarray | None = None,
-               agglomerate_fill: np.ndarray | None = None
+               agglomerate_fill: np.ndarray | None = None,
+               radius3: np.ndarray | None = None, fraction3: np.ndarray | None = None,
+               radius4: np.ndarray | None = None, fraction4: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray | None]:
         """rho (B, W) of B grain sets at W wavelengths and, with ``derivatives``,
-        d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 5) (zero columns for parameters not in use).
+        d rho / d(:data:`GRAIN_VARIABLES`) (B, W, 9) (zero columns for parameters not in use).
 
         The grain model and mixing rule are this instance's (``grains``, ``mixing``).
 
@@ -139,6 +209,10 @@ class GrainOptics:
             wavelengths_nm: (W,) nm.
             radius: (B,) um (the crystallite radius for agglomerates: it does not enter rho).
             radius2, fraction2: (B,) or None (one population).
+            radius3, fraction3, radius4, fraction4: (B,) or None: populations 3 and 4.
+                With them, or with populations of their own materials, the mixture rule
+                (:meth:`mixture`); fractions summing above 1 are scaled to sum 1 (population
+                1 then 0), which keeps a search's trial points evaluable.
             agglomerate_radius: (B,) um, required with ``grains = "agglomerate"``.
             agglomerate_fill: (B,) or None (the plugin's default, 0.5).
 
@@ -156,6 +230,10 @@ class GrainOptics:
             return np.broadcast_to(np.asarray(values, dtype=float), (b,))
 
         r2, f2 = per_set(radius2), per_set(fraction2)
+        if radius3 is not None or self.population_optics:
+            return self.mixture(wls, radius, [(r2, f2), (per_set(radius3), per_set(fraction3)),
+                                              (per_set(radius4), per_set(fraction4))],
+                                derivatives)
         ra = per_set(agglomerate_radius)
         fill = per_set(agglomerate_fill)
         if (r2 is None) != (f2 is None):
@@ -177,8 +255,8 @@ class GrainOptics:
             except RuntimeError as error:  # the plugin's message names the property
                 raise ValueError(str(error).removeprefix("powder: ")) from None
             rho[i] = values
-            if derivatives:
-                deriv[i] = d
+            if derivatives:  # albedo_table's columns: the first of GRAIN_VARIABLES
+                deriv[i][:, :len(registry.GRAIN_VARIABLES)] = d
         return rho, deriv
 
 
@@ -307,3 +385,4 @@ def parse_mix(spec: str) -> list[tuple[str, float, float]]:
                              "number") from None
         parts.append((material, f, r))
     return parts
+

@@ -111,6 +111,9 @@ GRAIN_VARIABLES: tuple[str, ...] = tuple(dict.fromkeys(
     name for rules in GRAIN_MODELS.values() for name in rules["allowed"] if name in RANGES))
 #: the properties of a second grain population
 SECOND_POPULATION = ("radius2", "fraction2")
+#: the properties of grain populations 2..4 (docs/model.md, "Several materials")
+POPULATIONS = SECOND_POPULATION + ("radius3", "fraction3", "radius4", "fraction4") + tuple(
+    f"{k}{j}" for j in range(2, MAX_POPULATIONS + 1) for k in ("material", "eta", "k"))
 
 
 def material_files(material: str) -> list[Path]:
@@ -173,6 +176,6 @@ def check_grain_model(grains: str, used: Iterable[str], free: Iterable[str] = ()
         raise ValueError(f"radius is the crystallite radius with grains = {grains!r} and "
                          f"does not enter the albedo: fit {size} (and {' and '.join(others)}) "
                          "instead")
-    two = [n for n in SECOND_POPULATION if n in used]
+    two = [n for n in POPULATIONS if n in used]
     if two and not rules["two_populations"]:
         raise ValueError(f"{two} cannot be used with grains = {grains!r} (one population)")
