@@ -66,40 +66,49 @@ def _cmd_colour(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_reflectance_csv(path: str) -> tuple:
-    """(wavelengths nm, reflectance) from a CSV of two columns (an optional header line;
-    ``#`` lines are comments)."""
+def _read_csv_columns(path: str, missing: str, what: str, columns: list[str],
+                      fields: str) -> list[list[float]]:
+    """Rows of ``len(columns)`` numbers from a CSV (an optional header line; ``#`` lines are
+    comments): ``missing`` is the message of a missing file, ``what`` names the file for
+    :func:`read_text`, ``fields`` describes the columns in the error messages."""
     import csv
     from pathlib import Path
-
-    import numpy as np
 
     from ..outputs import note_input
     from ..readers import read_text
 
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(f"--reflectance {path}: no such file")
+        raise FileNotFoundError(missing)
     note_input(p)
-    wl, values = [], []
-    for lineno, row in enumerate(csv.reader(read_text(p, "--reflectance").splitlines()),
-                                 start=1):
+    n = len(columns)
+    count = {2: "two", 3: "three"}[n]
+    rows = []
+    for lineno, row in enumerate(csv.reader(read_text(p, what).splitlines()), start=1):
         if not row or row[0].strip().startswith("#"):
             continue
-        if len(row) != 2:
-            raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 2 "
-                             "(wavelength in nm, reflectance)")
+        if len(row) != n:
+            raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected {n} ({fields})")
         try:
-            a, b = float(row[0]), float(row[1])
+            rows.append([float(v) for v in row])
         except ValueError:
-            if not wl:  # a header line
+            if not rows:  # a header line
                 continue
-            raise ValueError(f"{path}, line {lineno}: {row!r} is not two numbers") from None
-        wl.append(a)
-        values.append(b)
-    if not wl:
-        raise ValueError(f"{path}: no data rows (wavelength nm, reflectance)")
-    return np.array(wl), np.array(values)
+            raise ValueError(f"{path}, line {lineno}: {row!r} is not {count} numbers") from None
+    if not rows:
+        raise ValueError(f"{path}: no data rows (wavelength nm, {', '.join(columns[1:])})")
+    return rows
+
+
+def _read_reflectance_csv(path: str) -> tuple:
+    """(wavelengths nm, reflectance) from a CSV of two columns (an optional header line;
+    ``#`` lines are comments)."""
+    import numpy as np
+
+    a = np.array(_read_csv_columns(path, f"--reflectance {path}: no such file", "--reflectance",
+                                   ["wavelength", "reflectance"],
+                                   "wavelength in nm, reflectance"))
+    return a[:, 0], a[:, 1]
 
 
 def _cmd_albedo(args: argparse.Namespace) -> int:
@@ -131,34 +140,11 @@ def _cmd_albedo(args: argparse.Namespace) -> int:
 def _read_albedo_csv(path: str) -> tuple:
     """(wavelengths nm, albedo, sigma) from a CSV of three columns (an optional header line;
     ``#`` lines are comments)."""
-    import csv
-    from pathlib import Path
-
     import numpy as np
 
-    from ..outputs import note_input
-    from ..readers import read_text
-
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    note_input(p)
-    rows = []
-    for lineno, row in enumerate(csv.reader(read_text(p, "ALBEDO.csv").splitlines()), start=1):
-        if not row or row[0].strip().startswith("#"):
-            continue
-        if len(row) != 3:
-            raise ValueError(f"{path}, line {lineno}: {len(row)} fields, expected 3 "
-                             "(wavelength in nm, albedo, its standard uncertainty)")
-        try:
-            rows.append([float(v) for v in row])
-        except ValueError:
-            if not rows:  # a header line
-                continue
-            raise ValueError(f"{path}, line {lineno}: {row!r} is not three numbers") from None
-    if not rows:
-        raise ValueError(f"{path}: no data rows (wavelength nm, albedo, sigma)")
-    a = np.array(rows)
+    a = np.array(_read_csv_columns(path, f"{path}: no such file", "ALBEDO.csv",
+                                   ["wavelength", "albedo", "sigma"],
+                                   "wavelength in nm, albedo, its standard uncertainty"))
     return a[:, 0], a[:, 1], a[:, 2]
 
 

@@ -72,6 +72,118 @@ def _fractions(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return f, g
 
 
+def _check_inputs(wl: np.ndarray, rho: np.ndarray, sig: np.ndarray, parts: list) -> None:
+    """The errors of :func:`unmix` about the number of populations and the spectra."""
+    if not 2 <= len(parts) <= registry.MAX_POPULATIONS:
+        raise ValueError(f"unmixing {len(parts)} populations; valid range is "
+                         f"[2, {registry.MAX_POPULATIONS}]")
+    if not (len(wl) == len(rho) == len(sig)):
+        raise ValueError(f"wavelengths, albedo and sigma differ in length ({len(wl)}, "
+                         f"{len(rho)}, {len(sig)})")
+    if not np.all(np.isfinite(sig) & (sig > 0)):
+        raise ValueError("sigma must be finite and > 0 at every wavelength")
+    if not np.all(np.isfinite(rho) & (rho >= 0) & (rho <= 1)):
+        raise ValueError("the albedo must be in [0, 1] at every wavelength")
+
+
+def _start_amounts(parts: list, by: str, free_radii: bool, wavelengths: int) -> np.ndarray:
+    """The start log amounts of populations 2..n (a_j = exp(z_j) > 0); errors for an absent
+    population 1 and too few wavelengths."""
+    start = volume_fractions([(m, f) for m, f, _ in parts], by)
+    if start[0] <= 0:
+        raise ValueError(f"population 1 ({parts[0][0]}) needs a start fraction > 0")
+    n = len(parts)
+    free = (n - 1) + (n if free_radii else 0)
+    if wavelengths <= free:
+        raise ValueError(f"{wavelengths} wavelengths for {free} free variables: the fit is not "
+                         "determined; give more wavelengths or fewer free variables")
+    return np.log(np.maximum(np.array(start[1:]) / start[0], 1e-6))
+
+
+@dataclass
+class _Mixture:
+    """The model of :func:`unmix`: albedo (W,) and its Jacobian in the variables z."""
+
+    wl: np.ndarray
+    indices: list
+    r0: np.ndarray
+    free_radii: bool
+
+    def radii(self, z: np.ndarray) -> np.ndarray:
+        return np.exp(z[len(self.r0) - 1:]) if self.free_radii else self.r0
+
+    def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = len(self.r0)
+        a = np.exp(z[:n - 1])
+        radii = self.radii(z)
+        f, g = _fractions(a)
+        pops = [(float(radii[0]), None, self.indices[0])] + [
+            (float(radii[j]), float(f[j]), self.indices[j]) for j in range(1, n)]
+        values, d = _optics.mixture_albedo("sphere", list(map(float, self.wl)), pops, True)
+        d = np.asarray(d)  # (W, [d r1, d r2, d f2, d r3, d f3, ...])
+        d_f = d[:, [2 + 2 * (j - 1) for j in range(1, n)]]  # d rho / d f_j, f_1 = 1 - sum
+        # the model's fractions f_j (j >= 2) depend on a; f_1 follows them
+        jac = d_f @ (g[1:, :] * a[None, :])  # d / d z_k = d / d a_k * a_k
+        if self.free_radii:
+            d_r = d[:, [0] + [1 + 2 * (j - 1) for j in range(1, n)]] * radii[None, :]
+            jac = np.concatenate([jac, d_r], axis=1)
+        return np.asarray(values), jac
+
+
+def _solve(model: _Mixture, z0: np.ndarray, rho: np.ndarray, sig: np.ndarray) -> np.ndarray:
+    """The weighted least-squares variables, amounts within [1e-6, 1e6] and radii within
+    :data:`RADIUS_FACTOR` of their start."""
+    n = len(model.r0)
+    lo = np.full(len(z0), -math.log(1e6))
+    hi = np.full(len(z0), math.log(1e6))
+    if model.free_radii:
+        lo[n - 1:] = np.log(model.r0 / RADIUS_FACTOR)
+        hi[n - 1:] = np.log(model.r0 * RADIUS_FACTOR)
+    z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
+    sol = least_squares(lambda z: (model(z)[0] - rho) / sig, z0,
+                        jac=lambda z: model(z)[1] / sig[:, None], bounds=(lo, hi), method="trf",
+                        x_scale="jac", ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=500)
+    return sol.x
+
+
+def _covariance(jw: np.ndarray, warnings: list[str]) -> np.ndarray:
+    """``(J^T W J)^-1`` of the weighted Jacobian ``jw``; infinite (with a warning) when singular."""
+    try:
+        return np.linalg.inv(jw.T @ jw)
+    except np.linalg.LinAlgError:
+        warnings.append("the Jacobian is singular: the data cannot decide the fractions")
+        return np.full((jw.shape[1], jw.shape[1]), np.inf)
+
+
+def _undetermined(materials: list[str], f: np.ndarray, f_err: np.ndarray, cov_z: np.ndarray,
+                  free_radii: bool) -> list[str]:
+    """Warnings: fractions whose uncertainty exceeds them, variables correlated beyond
+    :data:`CORRELATION_LIMIT`."""
+    warnings = []
+    for j in range(len(materials)):
+        if not f_err[j] < max(f[j], 1e-3):
+            warnings.append(f"the fraction of {materials[j]} ({f[j]:.3g} +/- {f_err[j]:.2g}) is "
+                            "not determined by the data")
+    d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
+    corr = cov_z / np.outer(d, d)
+    names = [f"fraction of {m}" for m in materials[1:]] + (
+        [f"radius of {m}" for m in materials] if free_radii else [])
+    for i in range(len(corr)):
+        for k in range(i + 1, len(corr)):
+            if abs(corr[i, k]) > CORRELATION_LIMIT:
+                warnings.append(f"{names[i]} and {names[k]} are correlated ({corr[i, k]:+.3f}): "
+                                "the data constrain a combination of them only")
+    return warnings
+
+
+def _mass_fractions(materials: list[str], f: np.ndarray) -> np.ndarray | None:
+    """The volume fractions ``f`` by mass; None when a material has no density."""
+    if not all(m in registry.DENSITIES for m in materials):
+        return None
+    w = f * np.array([registry.DENSITIES[m] for m in materials])
+    return w / w.sum()
+
+
 def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
           free_radii: bool = False, by: str = "volume") -> UnmixResult:
     """Fit the fractions of a mixture of known materials to an albedo spectrum.
@@ -94,98 +206,31 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
     rho = np.atleast_1d(np.asarray(albedo, dtype=float))
     sig = np.atleast_1d(np.asarray(sigma, dtype=float))
-    if not 2 <= len(parts) <= registry.MAX_POPULATIONS:
-        raise ValueError(f"unmixing {len(parts)} populations; valid range is "
-                         f"[2, {registry.MAX_POPULATIONS}]")
-    if not (len(wl) == len(rho) == len(sig)):
-        raise ValueError(f"wavelengths, albedo and sigma differ in length ({len(wl)}, "
-                         f"{len(rho)}, {len(sig)})")
-    if not np.all(np.isfinite(sig) & (sig > 0)):
-        raise ValueError("sigma must be finite and > 0 at every wavelength")
-    if not np.all(np.isfinite(rho) & (rho >= 0) & (rho <= 1)):
-        raise ValueError("the albedo must be in [0, 1] at every wavelength")
-    start = volume_fractions([(m, f) for m, f, _ in parts], by)
-    if start[0] <= 0:
-        raise ValueError(f"population 1 ({parts[0][0]}) needs a start fraction > 0")
+    _check_inputs(wl, rho, sig, parts)
+    z0 = _start_amounts(parts, by, free_radii, len(wl))
     n = len(parts)
-    free = (n - 1) + (n if free_radii else 0)
-    if len(wl) <= free:
-        raise ValueError(f"{len(wl)} wavelengths for {free} free variables: the fit is not "
-                         "determined; give more wavelengths or fewer free variables")
     indices = [[complex(m) for m in GrainOptics({"material": mat}).index(wl)]
                for mat, _, _ in parts]
     r0 = np.array([float(r) for _, _, r in parts])
-    # variables: log amounts (a_j = exp(z_j), a_j > 0) then, with free_radii, log radii
-    z0 = np.log(np.maximum(np.array(start[1:]) / start[0], 1e-6))
+    # variables: log amounts then, with free_radii, log radii
     if free_radii:
         z0 = np.concatenate([z0, np.log(r0)])
-
-    def model(z):
-        a = np.exp(z[:n - 1])
-        radii = np.exp(z[n - 1:]) if free_radii else r0
-        f, g = _fractions(a)
-        pops = [(float(radii[0]), None, indices[0])] + [
-            (float(radii[j]), float(f[j]), indices[j]) for j in range(1, n)]
-        values, d = _optics.mixture_albedo("sphere", list(map(float, wl)), pops, True)
-        d = np.asarray(d)  # (W, [d r1, d r2, d f2, d r3, d f3, ...])
-        d_f = d[:, [2 + 2 * (j - 1) for j in range(1, n)]]  # d rho / d f_j, f_1 = 1 - sum
-        # the model's fractions f_j (j >= 2) depend on a; f_1 follows them
-        jac = d_f @ (g[1:, :] * a[None, :])  # d / d z_k = d / d a_k * a_k
-        if free_radii:
-            d_r = d[:, [0] + [1 + 2 * (j - 1) for j in range(1, n)]] * radii[None, :]
-            jac = np.concatenate([jac, d_r], axis=1)
-        return np.asarray(values), jac
-
-    def residuals(z):
-        return (model(z)[0] - rho) / sig
-
-    def jacobian(z):
-        return model(z)[1] / sig[:, None]
-
-    lo = np.full(len(z0), -math.log(1e6))
-    hi = np.full(len(z0), math.log(1e6))
-    if free_radii:
-        lo[n - 1:] = np.log(r0 / RADIUS_FACTOR)
-        hi[n - 1:] = np.log(r0 * RADIUS_FACTOR)
-    z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
-    sol = least_squares(residuals, z0, jac=jacobian, bounds=(lo, hi), method="trf",
-                        x_scale="jac", ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=500)
-    z = sol.x
+    model = _Mixture(wl, indices, r0, free_radii)
+    z = _solve(model, z0, rho, sig)
     values, jac = model(z)
     res = (values - rho) / sig
-    jw = jac / sig[:, None]
     warnings: list[str] = []
-    try:
-        cov_z = np.linalg.inv(jw.T @ jw)
-    except np.linalg.LinAlgError:
-        cov_z = np.full((len(z), len(z)), np.inf)
-        warnings.append("the Jacobian is singular: the data cannot decide the fractions")
+    cov_z = _covariance(jac / sig[:, None], warnings)
     a = np.exp(z[:n - 1])
     f, g = _fractions(a)
     ga = g * a[None, :]  # d f / d z
     cov_f = ga @ cov_z[:n - 1, :n - 1] @ ga.T
     f_err = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
-    radii = np.exp(z[n - 1:]) if free_radii else r0
+    radii = model.radii(z)
     r_err = np.zeros(n)
     if free_radii:
         r_err = radii * np.sqrt(np.maximum(np.diag(cov_z)[n - 1:], 0.0))
     materials = [m for m, _, _ in parts]
-    for j in range(n):
-        if not f_err[j] < max(f[j], 1e-3):
-            warnings.append(f"the fraction of {materials[j]} ({f[j]:.3g} +/- {f_err[j]:.2g}) is "
-                            "not determined by the data")
-    d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
-    corr = cov_z / np.outer(d, d)
-    names = [f"fraction of {m}" for m in materials[1:]] + (
-        [f"radius of {m}" for m in materials] if free_radii else [])
-    for i in range(len(z)):
-        for k in range(i + 1, len(z)):
-            if abs(corr[i, k]) > CORRELATION_LIMIT:
-                warnings.append(f"{names[i]} and {names[k]} are correlated ({corr[i, k]:+.3f}): "
-                                "the data constrain a combination of them only")
-    mass = None
-    if all(m in registry.DENSITIES for m in materials):
-        w = f * np.array([registry.DENSITIES[m] for m in materials])
-        mass = w / w.sum()
-    return UnmixResult(materials, f, f_err, mass, radii, r_err, float(res @ res),
-                       len(wl) - len(z), values, warnings)
+    warnings += _undetermined(materials, f, f_err, cov_z, free_radii)
+    return UnmixResult(materials, f, f_err, _mass_fractions(materials, f), radii, r_err,
+                       float(res @ res), len(wl) - len(z), values, warnings)

@@ -163,6 +163,21 @@ def _visible_wavelengths(wavelengths_nm) -> np.ndarray:
     return wl
 
 
+def _powder_properties(radius: float | None, radius2: float | None, fraction2: float | None,
+                       material: str, properties: dict) -> dict:
+    """The plugin's properties of :func:`powder_colour` (its defaults filled in)."""
+    if radius is None and "albedo" not in properties:
+        radius = float(registry.DEFAULTS["radius"])
+    props = {"type": "powder", **properties}
+    if radius is not None:
+        props["radius"] = radius
+    if "eta" not in properties:
+        props["material"] = material
+    if radius2 is not None:
+        props.update(radius2=radius2, fraction2=fraction2)
+    return props
+
+
 def powder_colour(
     radius: float | None = None,
     radius2: float | None = None,
@@ -196,16 +211,7 @@ def powder_colour(
         raise ValueError("give both radius2 and fraction2, or neither")
     check_range("samples", samples, 16)
 
-    if radius is None and "albedo" not in properties:
-        radius = float(registry.DEFAULTS["radius"])
-    props = {"type": "powder", **properties}
-    if radius is not None:
-        props["radius"] = radius
-    if "eta" not in properties:
-        props["material"] = material
-    if radius2 is not None:
-        props.update(radius2=radius2, fraction2=fraction2)
-
+    props = _powder_properties(radius, radius2, fraction2, material, properties)
     n = len(wavelengths_nm)
     groups = _groups(wavelengths_nm)
     with use_variant(_spectral_variant()):

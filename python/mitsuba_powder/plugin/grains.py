@@ -241,6 +241,13 @@ class GrainOptics:
         if self.grains == "agglomerate" and ra is None:
             raise ValueError('grains = "agglomerate" needs agglomerate_radius (um); valid '
                              "range is (0, inf)")
+        return self._albedo_tables(wls, radius, r2, f2, ra, fill, derivatives)
+
+    def _albedo_tables(self, wls: list[float], radius: np.ndarray, r2, f2, ra, fill,
+                       derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`albedo` of up to two populations of this material, one grain set at a time
+        (``r2``, ``f2``, ``ra``, ``fill``: (B,) or None)."""
+        b = len(radius)
         index = [complex(m) for m in self.index(wls)]
         rho = np.empty((b, len(wls)))
         deriv = np.zeros((b, len(wls), len(GRAIN_VARIABLES))) if derivatives else None
