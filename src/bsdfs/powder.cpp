@@ -68,28 +68,13 @@ Dry powder (:monosp:`powder`)
      (Default: none (one population), range [0, 1])
    - |exposed|, |differentiable|
 
- * - radius3
+ * - radius3, fraction3, radius4, fraction4
    - |float| or |texture|
-   - Radius of a third grain population in micrometres; needs ``fraction3`` and population 2
-     (Default: none (no third population), range (0, inf))
-   - |exposed|, |differentiable|
-
- * - fraction3
-   - |float| or |texture|
-   - Volume fraction of the third population; needs ``radius3``
-     (Default: none (no third population), range [0, 1])
-   - |exposed|, |differentiable|
-
- * - radius4
-   - |float| or |texture|
-   - Radius of a fourth grain population in micrometres; needs ``fraction4`` and population 3
-     (Default: none (no fourth population), range (0, inf))
-   - |exposed|, |differentiable|
-
- * - fraction4
-   - |float| or |texture|
-   - Volume fraction of the fourth population; needs ``radius4``
-     (Default: none (no fourth population), range [0, 1])
+   - Radius (micrometres) and volume fraction of the solid of a third (``radius3``,
+     ``fraction3``) and a fourth (``radius4``, ``fraction4``) grain population; both or neither,
+     and the population before (population 2 for the third, 3 for the fourth)
+     (Population 3: Default: none (no third population); population 4: Default: none (no fourth
+     population); range (0, inf) for the radii, range [0, 1] for the fractions)
    - |exposed|, |differentiable|
 
  * - material2, material3, material4
