@@ -393,11 +393,7 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
     """
     t0 = time.perf_counter()
     log = log or (lambda line: None)
-    if options is None:
-        options = fit_options(**fit)
-    elif fit:
-        raise ValueError(f"give the fit's options as options or as keywords, not both (got "
-                         f"options and {sorted(fit)})")
+    options = _options_of(options, fit)
     size = check_tile_size(tile_size, options.name("tile_size"))
     _check_tiled(options)
     plan = _plan(capture, encoding, mask, options)
@@ -417,6 +413,17 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
         record = result.fit_settings["exposure"] = _given_exposure(plan, held)
     result.exposure = float(record["value"])
     return result
+
+
+def _options_of(options: FitOptions | None, fit: dict) -> FitOptions:
+    """The tiled fit's options: ``options`` as given, or built from the keywords ``fit``
+    (not both)."""
+    if options is None:
+        return fit_options(**fit)
+    if fit:
+        raise ValueError(f"give the fit's options as options or as keywords, not both (got "
+                         f"options and {sorted(fit)})")
+    return options
 
 
 def _given_exposure(plan: _Plan, held: np.ndarray) -> dict:
