@@ -215,5 +215,6 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("bench_textures.py", "textures", ("relative to constant", "max relative error")),
     Benchmark("bench_rti_fit.py", "rti_fit", ("fit s", "peak MiB")),
     Benchmark("bench_rti_tiles.py", "rti_tiles", ("fit s", "peak MiB/worker", "identical")),
+    Benchmark("bench_relief.py", "relief", ("step", "time s")),
     Benchmark("ptfe_reference_fit.py", "ptfe_reference", ("RMSE BRF", "within 1 %")),
 )

@@ -233,13 +233,14 @@ def test_unchanged_rounds_are_not_repeated(capture):
     lines = []
     fixed = {n: cap["maps"][n] for n in HELD}
     res = rf.fit_maps(cap["images"], cap["directions"], fixed=fixed, gains="fixed",
-                      initial_gains=cap["gains"], rounds=4, progress=lines.append)
+                      initial_gains=cap["gains"], rounds=4, progress=lines.append,
+                      shadows="ratio")
     skipped = [line for line in lines if "observation flags unchanged" in line]
     fitted = sum("Levenberg-Marquardt" in ln for ln in lines)
     assert skipped and len(skipped) + fitted == 4
     # a skipped round would have repeated the last one: the maps are those of the rounds run
     ref = rf.fit_maps(cap["images"], cap["directions"], fixed=fixed, gains="fixed",
-                      initial_gains=cap["gains"], rounds=fitted)
+                      initial_gains=cap["gains"], rounds=fitted, shadows="ratio")
     for name in ("normals", "albedo", "residual_rms"):
         np.testing.assert_array_equal(getattr(res, name), getattr(ref, name), err_msg=name)
 
@@ -273,12 +274,13 @@ def test_blocks_within_a_memory_budget_give_the_same_maps(capture, monkeypatch):
     cap = capture
     fixed = {n: cap["maps"][n] for n in HELD}
     one = rf.fit_maps(cap["images"], cap["directions"], fixed=fixed, gains="fixed",
-                      initial_gains=cap["gains"])
+                      initial_gains=cap["gains"], shadows="ratio")
     lines = []
     # a budget below the fit's smallest, so that 256 pixels need several blocks
     monkeypatch.setattr(blocks_module, "MIN_MEMORY_GB", 1e-4)
     blocks = rf.fit_maps(cap["images"], cap["directions"], fixed=fixed, gains="fixed",
-                         initial_gains=cap["gains"], memory_gb=0.002, progress=lines.append)
+                         initial_gains=cap["gains"], memory_gb=0.002, progress=lines.append,
+                         shadows="ratio")
     assert one.fit_settings["blocks"] == 1 and blocks.fit_settings["blocks"] > 2
     assert sum(line.startswith("block ") for line in lines) == blocks.fit_settings["blocks"]
     assert blocks.fit_settings["peak_memory_mib"] > 0 and blocks.fit_settings["memory_gb"] == 0.002

@@ -312,6 +312,7 @@ def _add_fit_maps_parser(sub: argparse._SubParsersAction) -> None:
                         "fit.json, scene.xml")
     _add_capture_options(p, "fitted")
     _add_fit_options(p)
+    _add_shadow_options(p)
     _add_tile_options(p)
     p.set_defaults(func=_cmd_fit_maps, out_folder=True)
 
@@ -365,6 +366,27 @@ def _add_fit_options(p: argparse.ArgumentParser, model: str = "") -> None:
                         "kernels, default) or numpy (the reference)")
 
 
+def _add_shadow_options(p: argparse.ArgumentParser) -> None:
+    """The fit's cast shadows (docs/rti.md, "Relief and cast shadows")."""
+    p.add_argument("--shadows", default=None, metavar="{relief,ratio}",
+                   help="ratio (default): flag observations far below the model only; "
+                        "relief (untiled): integrate the relief from the fitted normals and "
+                        "fit every pixel again under each light's visibility over it "
+                        "(docs/rti.md says why it is not the default)")
+    p.add_argument("--light-size", default=None, metavar="DEG",
+                   help="the lights' angular radius, degrees (0-45; default 0.5): the soft "
+                        "edge of cast shadows")
+
+
+def _add_render_options(p: argparse.ArgumentParser, what: str) -> None:
+    """Rendered relights: samples per pixel and the Mitsuba variant."""
+    p.add_argument("--spp", default=64, metavar="N",
+                   help=f"{what}: samples per pixel (>= 1; default 64)")
+    p.add_argument("--render-variant", default="llvm_ad_rgb", metavar="VARIANT",
+                   help=f"{what}: the Mitsuba variant (any RGB variant: scalar_rgb, "
+                        "llvm_ad_rgb, cuda_ad_rgb; default llvm_ad_rgb)")
+
+
 def _add_tile_options(p: argparse.ArgumentParser) -> None:
     """fit-maps' tiled fit on a Dask cluster (docs/rti.md, "Tiles and clusters"). The values
     are checked by the fit (mitsuba_powder.rti.options), not here."""
@@ -390,6 +412,18 @@ def _add_relight_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder (one image per .lp line, "
                                                 "the capture's format and bit depth)")
     _add_light_options(p, fit=False)
+    p.add_argument("--render", action="store_true",
+                   help="path trace scene.xml (the relief's mesh with the powder BSDF: cast "
+                        "shadows and interreflections) under each light instead of the "
+                        "per-pixel model")
+    shadows = p.add_mutually_exclusive_group()
+    shadows.add_argument("--shadows", action="store_true",
+                         help="per-pixel model: cast shadows over the fit's relief "
+                              "(relief.exr) even where the fit did not use them (default: "
+                              "when it was fitted with --shadows relief)")
+    shadows.add_argument("--no-shadows", action="store_true",
+                         help="per-pixel model: no cast shadows even where the fit used them")
+    _add_render_options(p, "--render")
     p.set_defaults(func=_cmd_relight, out_folder=True)
 
 
@@ -402,8 +436,15 @@ def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
     _add_capture_options(p, "scored")
     p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
                    help="comma-separated: ptm, hsh, lambertian, lambertian_clamped, powder "
-                        "(the per-pixel powder fit of fit-maps)")
+                        "(the per-pixel powder fit of fit-maps without a relief), "
+                        "powder_shadows (with its relief's cast shadows), powder_rendered "
+                        "(that fit's relief path traced by Mitsuba)")
+    p.add_argument("--light-size", default=None, metavar="DEG",
+                   help="powder_shadows, powder_rendered: the lights' angular radius, "
+                        "degrees (0-45; default 0.5)")
+    _add_render_options(p, "powder_rendered")
     _add_fit_options(p, "powder model: ")
+    p.set_defaults(shadows=None)  # set per powder row
     p.add_argument("--phase", type=int, default=4,
                    help="interpolation protocol: hold out the lights k %% 5 == PHASE (.lp "
                         "order from 0; default 4)")

@@ -18,7 +18,7 @@ from .common import _fixed_properties, _names
 
 #: How messages name the fit's options given by a flag of another name
 FLAGS = {"light_distance": "--light-distance", "memory_gb": "--memory-gb",
-         "saturation": "--saturation",
+         "saturation": "--saturation", "shadows": "--shadows", "light_size": "--light-size",
          "gain_subsample": "--gain-pixels", "tile_size": "--tile-size", "workers": "--workers",
          "scheduler": "--scheduler"}
 
@@ -67,6 +67,10 @@ def _fit_options(args: argparse.Namespace, tiled: bool = False, **given):
         given["light_distance"] = args.light_distance
     if args.saturation is not None:
         given["saturation"] = _number(args.saturation)
+    if args.shadows is not None:
+        given["shadows"] = args.shadows
+    if args.light_size is not None:
+        given["light_size"] = _number(args.light_size)
     trend = GainTrend(args.gain_model, _number(args.gain_degree), 0, _number(args.gain_spread))
     if not tiled:
         given["gain_trend"] = trend
@@ -151,12 +155,25 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
     options = _lp_distance(args, capture, options, size)
     capture, options, cal = _reference(args, capture, options)
     result = run_fit(capture.images, capture.directions, options, capture.mask, print)
+    _keep_relief(result, options)
     if cal is not None:
         result.fit_settings["exposure"].update(source="reference",
                                                reference=_reference_record(cal))
     path = write_maps(result, args.out, capture, list(capture.names), args.pixel_size)
     _print_maps_summary(result, path, args.out)
     return 0
+
+
+def _keep_relief(result, options) -> None:
+    """A fit with the ratio test (``--shadows ratio``, the default) keeps the relief of its
+    normals too (relief.exr, relief.ply, scene.xml's mesh), unused by the fit: relight shades
+    by it only when asked (``relight --shadows``, ``--render``)."""
+    from ..rti.relief import make_relief
+
+    result.fit_settings.setdefault("shadows", options.shadows)
+    if result.relief is None:
+        result.relief = make_relief(result.normals, result.residual_rms, result.mask,
+                                    options.light_size)
 
 
 def _print_maps_summary(result, path, out: str) -> None:
@@ -216,7 +233,7 @@ def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
     note_inputs(lp_image_paths(args.capture, names))
     if args.mask is not None:
         note_input(args.mask)
-    for name in maps_files([n for n in free if n != "albedo"] + list(fixed)):
+    for name in maps_files([n for n in free if n != "albedo"] + list(fixed), relief=False):
         output_path(args.out, name, mkdir=False)  # a refused output fails before the fit
     result = fit_maps_tiled(
         args.capture, args.out, _number(args.tile_size), encoding=args.encoding,
@@ -241,7 +258,11 @@ def _cmd_relight(args: argparse.Namespace) -> int:
 
     distance = None if args.light_distance is None else parse_light_distance(
         args.light_distance, "--light-distance", fit=False)
-    paths = relight_files(args.maps, args.lp, args.out, _pixel_size(args), distance)
+    render = {"spp": _number(args.spp), "variant": args.render_variant} if args.render \
+        else None
+    paths = relight_files(args.maps, args.lp, args.out, _pixel_size(args), distance,
+                          shadows=False if args.no_shadows else (True if args.shadows
+                                                                 else None), render=render)
     print(f"wrote {len(paths)} images to {args.out}")
     return 0
 
@@ -249,13 +270,15 @@ def _cmd_relight(args: argparse.Namespace) -> int:
 def _cmd_compare_maps(args: argparse.Namespace) -> int:
     from ..rti.baselines import BASELINES
     from ..rti.comparison import compare, write_comparison
+    from ..rti.relief_rows import POWDER_ROWS
 
     names = [m.strip() for m in args.models.split(",") if m.strip()]
-    unknown = [n for n in names if n != "powder" and n not in BASELINES]
+    unknown = [n for n in names if n not in POWDER_ROWS and n not in BASELINES]
     if unknown or not names:
         raise ValueError(f"--models {args.models!r}: unknown {unknown}; valid models are "
-                         f"{', '.join(list(BASELINES) + ['powder'])}")
+                         f"{', '.join(list(BASELINES) + list(POWDER_ROWS))}")
     options = _fit_options(args, free=_names(args.free), fixed=_fixed_properties(args.set))
+    render = {"spp": _number(args.spp), "variant": args.render_variant}
     size = _pixel_size(args)
     capture = _load(args)
     capture, options, cal = _reference(args, capture, options)
@@ -265,7 +288,7 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     if field != "far" and not near:
         raise ValueError(f"--field = {field!r} needs a finite light distance (--light-distance "
                          "R or fit, or an .lp of positions)")
-    models = _compared_models(names, field, distance, options, capture, cal)
+    models = _compared_models(names, field, distance, options, render, capture, cal)
     comp = compare(capture, models, phase=args.phase, light_distance=distance,
                    saturation=options.saturation, saturation_name=options.name("saturation"))
     path = write_comparison(comp, args.out, error_images=not args.no_error_images)
@@ -275,51 +298,31 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compared_models(names: list[str], field: str, distance, options, capture=None,
-                     cal: dict | None = None) -> dict:
+def _compared_models(names: list[str], field: str, distance, options, render: dict,
+                     capture=None, cal: dict | None = None) -> dict:
     """compare-maps' fitters by row name: each model with distant lights (``far``), at the
-    light distance (``near``, rows ``<model>_near``) or both; the powder model is the
-    per-pixel fit of fit-maps with ``options`` (with a reference card's calibration ``cal``:
-    the fitted lights' relative gains held, the held-out lights relit at their irradiance)."""
-    from dataclasses import replace
-
+    light distance (``near``, rows ``<model>_near``) or both; the powder rows are the
+    per-pixel fit of fit-maps with ``options``
+    (:func:`mitsuba_powder.rti.relief_rows.powder_fitters`; with a reference card's
+    calibration ``cal``: the fitted lights' relative gains held, the held-out lights relit at
+    their irradiance)."""
     from ..rti.comparison import baseline_fitter
-    from ..rti.plan import run_fit
+    from ..rti.relief_rows import POWDER_ROWS, powder_fitters
 
-    def powder(r):
-        opts = options.replace(light_distance=r)
-        if cal is None:
-            return lambda images, directions, mask=None: run_fit(images, directions, opts, mask)
-
-        def fit(images, directions, mask=None):
-            idx = _light_indices(capture.directions, directions)
-            kept = opts.replace(gains=replace(opts.gains, initial=cal["gains"][idx]))
-            return _Calibrated(run_fit(images, directions, kept, mask), capture.directions,
-                               cal["irradiance"])
-        return fit
+    calibration = None if cal is None else {
+        "directions": capture.directions, "gains": cal["gains"],
+        "irradiance": cal["irradiance"]}
 
     fields = {"far": ((math.inf, ""),), "near": ((distance, "_near"),),
               "both": ((math.inf, ""), (distance, "_near"))}[field]
-    return {name + suffix: powder(r) if name == "powder" else baseline_fitter(name, r)
-            for name in names for r, suffix in fields}
-
-
-def _light_indices(all_directions: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """The rows of ``all_directions`` (K, 3) that ``directions`` (K', 3) are."""
-    diff = np.abs(directions[:, None, :] - all_directions[None, :, :]).max(axis=2)
-    return np.argmin(diff, axis=1)
-
-
-class _Calibrated:
-    """A powder fit relit at each light's irradiance from the reference card."""
-
-    def __init__(self, result, directions: np.ndarray, irradiance: np.ndarray):
-        self.result, self.directions, self.irradiance = result, directions, irradiance
-        self.n_parameters = result.n_parameters
-
-    def predict(self, directions: np.ndarray) -> np.ndarray:
-        gains = self.irradiance[_light_indices(self.directions, directions)]
-        return self.result.predict(directions, gains=gains)
+    out = {}
+    for r, suffix in fields:
+        powders = powder_fitters([n for n in names if n in POWDER_ROWS],
+                                 options.replace(light_distance=r), render, calibration)
+        for name in names:
+            out[name + suffix] = powders[name] if name in POWDER_ROWS else \
+                baseline_fitter(name, r)
+    return out
 
 
 def _compare_distance(args: argparse.Namespace, capture, options, size: float | None

@@ -17,6 +17,7 @@ from .lights import check_distance
 from .options import FitOptions
 from .pixels import PixelData
 from .properties import MAP_PROPERTIES, GrainAlbedo, property_map
+from .relief import Relief
 
 __all__ = ["MIN_LIGHTS", "FitData", "FitInputs", "check_inputs", "check_lights", "check_mask",
            "check_signal"]
@@ -37,6 +38,8 @@ class FitInputs:
         size: (H, W) the held grain size whose grains set the albedo, or None.
         grain: the albedo of the grains of a free or held grain size, or None.
         options: the fit's options.
+        relief: the relief of a first fit (:mod:`mitsuba_powder.rti.relief`), whose
+            visibility of each light shades the pixels' lights, or None.
     """
 
     images: np.ndarray
@@ -48,6 +51,7 @@ class FitInputs:
     size: np.ndarray | None
     grain: GrainAlbedo | None
     options: FitOptions
+    relief: Relief | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -64,11 +68,21 @@ class FitInputs:
             fixed_albedo = self.grain(self.size[sel])[0]
         else:
             fixed_albedo = None if self.albedo is None else self.albedo[sel]
+        field = pixel_light_field(self.d, light_distance, self.shape, sel)
+        shadowed = None
+        if self.relief is not None:  # the visibility scales each (pixel, light)'s irradiance
+            p = int(np.count_nonzero(sel))
+            dirs = field[0] if field is not None else np.ascontiguousarray(
+                np.broadcast_to(self.d.astype(np.float32), (p,) + self.d.shape))
+            vis = self.relief.visibility(dirs if field is not None else self.d, sel)
+            # lights less than half visible are left out (their factor only needs to be > 0)
+            lit = np.maximum(vis, 0.5).astype(np.float64)
+            s = lit if field is None else field[1] * lit
+            field, shadowed = (dirs, s), vis < 0.5
         return FitData(obs=obs, d=self.d, mask=sel, gains=gains,
                        fixed_maps={n: v[sel] for n, v in self.maps.items()},
                        fixed_albedo=fixed_albedo, grain=self.grain, options=options,
-                       field=pixel_light_field(self.d, light_distance, self.shape, sel),
-                       light_distance=light_distance)
+                       field=field, light_distance=light_distance, shadowed=shadowed)
 
 
 @dataclass(eq=False)
@@ -85,6 +99,7 @@ class FitData:
     options: FitOptions                # the stage's options
     field: tuple[np.ndarray, np.ndarray] | None = None  # near-field lights: (P, K, 3), (P, K)
     light_distance: float | np.ndarray = math.inf        # r in image widths
+    shadowed: np.ndarray | None = None  # (P, K) bool: below the relief's horizon
 
     @property
     def scale(self) -> float:
@@ -110,15 +125,20 @@ class FitData:
         """(P, K): observations with a channel at or above the saturation level."""
         return np.any(self.obs >= self.options.saturation, axis=2)
 
+    @property
+    def usable(self) -> np.ndarray:
+        """(P, K): observations neither saturated nor below the relief's horizon."""
+        return ~self.saturated if self.shadowed is None else ~self.saturated & ~self.shadowed
+
     def flags(self, predicted: np.ndarray) -> np.ndarray:
-        """Weights (P, K): 0 where saturated or where the observed channel mean is below the
-        ``predicted`` one (P, K, 3) by more than ``max(shadow_ratio x predicted,
+        """Weights (P, K): 0 where not :attr:`usable` or where the observed channel mean is
+        below the ``predicted`` one (P, K, 3) by more than ``max(shadow_ratio x predicted,
         shadow_floor)``."""
         obs = self.obs.mean(axis=2)
         pred = predicted.mean(axis=2)
         shadow = (pred - obs) > np.maximum(self.options.shadow_ratio * pred,
                                            self.options.shadow_floor)
-        return (~self.saturated & ~shadow).astype(np.float64)
+        return (self.usable & ~shadow).astype(np.float64)
 
     def pixel_data(self, s: slice, weights: np.ndarray, gains: np.ndarray, layout: list
                    ) -> PixelData:

@@ -12,6 +12,11 @@ A maps folder holds:
 - ``fit.json``: the settings held for every pixel, the free properties, the per-light gains, the
   capture's encoding / bit depth / file format (so that relit images match it), per-map
   statistics and the fit's diagnostics;
+- with a relief (:mod:`mitsuba_powder.rti.relief`; fit-maps keeps one with either ``shadows``):
+  ``relief.exr`` (the height field, pixel units), ``relief.ply`` (its mesh,
+  :func:`write_relief_ply`); ``scene.xml`` then renders the mesh with the powder BSDF by the
+  ``path`` integrator (cast shadows and interreflections; ``$max_depth``, default 4), and
+  ``scene_flat.xml`` is the flat patch below;
 - ``scene.xml``: the surface as a unit-height rectangle (width / height = the image's aspect)
   with a ``normalmap`` BSDF around ``<bsdf type="powder">`` whose properties are the maps as
   ``raw`` bitmap textures, seen by an orthographic camera straight above (one pixel per texel)
@@ -47,10 +52,15 @@ from .capture import Capture, write_images
 from .gains import GainModel
 from .lights import LightRig, distance_from_json, distance_to_json, point_lights, read_lp_rig
 from .properties import GRAIN_MAPS, MAP_GRAIN_SETTINGS
+from .relief import Relief, horizon_map
 from .result import MapsResult
 
 #: File written for the scene's normal map (tangent space, encoded (n + 1) / 2)
 NORMAL_TANGENT = "normal_tangent.exr"
+
+#: Files of a fit's relief: the height field (pixel units), its mesh, and the flat patch's
+#: scene (scene.xml renders the mesh)
+RELIEF_EXR, RELIEF_PLY, FLAT_SCENE = "relief.exr", "relief.ply", "scene_flat.xml"
 
 #: The scene of a maps folder (module docstring); ``str.format`` fields: the image size
 #: ``w``, ``h`` and ``aspect`` (w / h); the textures ``normalmap``, ``albedo`` and ``maps``
@@ -67,17 +77,14 @@ _SCENE = """<!--
     <default name="spp" value="4"/>
 {defaults}
 
-    <integrator type="direct">
-        <integer name="emitter_samples" value="1"/>
-        <integer name="bsdf_samples" value="0"/>
-    </integrator>
+{integrator}
 
     <sensor type="orthographic">
         <!-- the camera spans x in [-s, s] and y in [-s h / w, s h / w] for scale s = w / h:
              the rectangle exactly, one pixel per texel -->
         <transform name="to_world">
             <scale x="{aspect!r}" y="{aspect!r}"/>
-            <lookat origin="0, 0, 2" target="0, 0, 0" up="0, 1, 0"/>
+            <lookat origin="0, 0, {camera_z!r}" target="0, 0, 0" up="0, 1, 0"/>
         </transform>
         <sampler type="independent">
             <integer name="sample_count" value="$spp"/>
@@ -91,7 +98,15 @@ _SCENE = """<!--
 
 {emitter}
 
-    <shape type="rectangle">
+{shape}
+</scene>
+"""
+
+#: The flat patch: a rectangle with the fitted normals as a normal map
+_FLAT = ("""    <integrator type="direct">
+        <integer name="emitter_samples" value="1"/>
+        <integer name="bsdf_samples" value="0"/>
+    </integrator>""", """    <shape type="rectangle">
         <transform name="to_world">
             <scale x="{aspect!r}" y="1"/>
         </transform>
@@ -102,9 +117,21 @@ _SCENE = """<!--
 {albedo}{maps}{props}
             </bsdf>
         </bsdf>
-    </shape>
-</scene>
-"""
+    </shape>""")
+
+#: The relief: the height field's mesh (relief.ply: a vertex at each pixel's centre with its
+#: fitted normal as the shading normal, and a ring on the image's edges), path traced: cast
+#: shadows and interreflections (``$max_depth``: 2 is direct light only)
+_RELIEF = ("""    <default name="max_depth" value="4"/>
+    <integrator type="path">
+        <integer name="max_depth" value="$max_depth"/>
+    </integrator>""", """    <shape type="ply">
+        <string name="filename" value="{ply}"/>
+        <boolean name="face_normals" value="false"/>
+        <bsdf type="powder">
+{albedo}{maps}{props}
+        </bsdf>
+    </shape>""")
 
 
 _DISTANT = ("""    <emitter type="directional">
@@ -191,8 +218,10 @@ def _property_xml(settings: dict) -> str:
     return "\n".join(props)
 
 
-def scene_xml(result: MapsResult, settings: dict) -> str:
-    """The Mitsuba scene of a maps folder (module docstring)."""
+def scene_xml(result: MapsResult, settings: dict, relief: bool | None = None) -> str:
+    """The Mitsuba scene of a maps folder (module docstring): the relief's mesh
+    (``relief.ply``) when ``relief`` (default: when the fit has one), else the flat patch."""
+    relief = result.relief is not None if relief is None else relief
     h, w = result.mask.shape
     grain_maps = [name for name in result.maps if name in GRAIN_MAPS]
     if not grain_maps:  # the albedo map replaces the grains: the plugin takes one or the other
@@ -207,17 +236,30 @@ def scene_xml(result: MapsResult, settings: dict) -> str:
         position, intensity = point_lights(LightRig(np.array([[0.0, 0.0, 1.0]]), r), sw)
         emitter = _NEAR[0].format(r=r, sw=sw)
         defaults = _NEAR[1].format(pz=float(position[0, 2]), intensity=float(intensity[0]))
-    return _SCENE.format(w=w, h=h, aspect=w / h, normalmap=_bitmap_xml("normalmap",
-                                                                        NORMAL_TANGENT),
-                         albedo=albedo, maps=maps, props=_property_xml(settings),
-                         emitter=emitter, defaults=defaults)
+    integrator, shape = _RELIEF if relief else _FLAT
+    props = _property_xml(settings)
+    if relief:  # one level less deep than in the normal map
+        albedo, maps = _dedented(albedo), _dedented(maps)
+        props = _dedented(props + "\n").rstrip("\n")
+    shape = shape.format(aspect=w / h, normalmap=_bitmap_xml("normalmap", NORMAL_TANGENT),
+                         albedo=albedo, maps=maps, props=props, ply=RELIEF_PLY)
+    top = 0.0 if not relief else float(np.max(result.relief.height)) * 2.0 / h
+    return _SCENE.format(w=w, h=h, aspect=w / h, emitter=emitter, defaults=defaults,
+                         integrator=integrator, shape=shape, camera_z=2.0 + max(top, 0.0))
 
 
-def maps_files(map_names) -> list[str]:
-    """The files :func:`write_maps` writes for maps of these property names."""
+def _dedented(xml: str) -> str:
+    """``xml`` indented by one level less."""
+    return "".join(line[4:] + "\n" for line in xml.splitlines())
+
+
+def maps_files(map_names, relief: bool = False) -> list[str]:
+    """The files :func:`write_maps` writes for maps of these property names (and a
+    relief)."""
     return ([f"{name}.exr" for name in map_names]
             + ["albedo.exr", "normal.exr", NORMAL_TANGENT, "residual.exr", "mask.exr",
-               "scene.xml", "fit.json"])
+               "scene.xml", "fit.json"]
+            + ([RELIEF_EXR, RELIEF_PLY, FLAT_SCENE] if relief else []))
 
 
 def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None = None,
@@ -235,11 +277,16 @@ def write_maps(result: MapsResult, out_dir: str | Path, capture: Capture | None 
     """
     out = Path(out_dir)
     # every output checked before anything is written
-    target = {name: output_path(out, name) for name in maps_files(result.maps)}
+    relief = result.relief is not None
+    target = {name: output_path(out, name) for name in maps_files(result.maps, relief)}
     _write_map_files(result, target)
     settings = {k: v for k, v in result.settings.items()
                 if isinstance(v, (str, int, float)) and not isinstance(v, bool)}
     target["scene.xml"].write_text(scene_xml(result, settings))
+    if relief:
+        _write_exr(target[RELIEF_EXR], result.relief.height)
+        write_relief_ply(target[RELIEF_PLY], result.relief.height, result.as_maps()["normal"])
+        target[FLAT_SCENE].write_text(scene_xml(result, settings, relief=False))
     info = _fit_info(result, settings, capture, light_names, pixel_size)
     path = target["fit.json"]
     path.write_text(json.dumps(info, indent=1, default=_json_default))
@@ -294,6 +341,11 @@ def _fit_info(result: MapsResult, settings: dict, capture: Capture | None,
             "units": "distance in image widths from the image's centre (null: distant); "
                      "pixel_size in the .lp positions' unit per pixel"},
         "gain_model": None if result.gain_model is None else result.gain_model.to_dict(),
+        "relief": None if result.relief is None else {
+            "height": RELIEF_EXR, "mesh": RELIEF_PLY, "flat_scene": FLAT_SCENE,
+            "units": "pixels (a pixel's width; times pixel_size: the .lp positions' unit)",
+            "light_size_deg": result.relief.light_radius_deg,
+            "azimuths": int(result.relief.horizon.shape[2])},
     }
 
 
@@ -340,13 +392,66 @@ def read_maps(maps_dir: str | Path) -> tuple[MapsResult, dict]:
         gain_model=(GainModel.from_dict(info["gain_model"]) if info.get("gain_model")
                     else None),
         exposure=float(info.get("exposure", 1.0)),
+        relief=_read_relief(folder, info.get("relief")),
     )
     return result, info
 
 
+def _read_relief(folder: Path, info: dict | None) -> Relief | None:
+    """The relief of a maps folder (its horizon map computed again), or None."""
+    if not info:
+        return None
+    height = _read_exr(folder / info["height"]).astype(np.float64)
+    return Relief(height, horizon_map(height, int(info["azimuths"])),
+                  float(info["light_size_deg"]))
+
+
+def write_relief_ply(path: Path, height: np.ndarray, normals: np.ndarray) -> None:
+    """The relief's mesh as a binary PLY in the scene's units (module docstring): a vertex at
+    each pixel's centre (x right, y up, the height; ``2 / H`` scene units a pixel) with its
+    fitted normal and the maps' UV (``u = (j + 1/2) / W``, ``v = 1 - (i + 1/2) / H``, as the
+    rectangle's), and a ring of vertices on the image's edges repeating their neighbour's
+    height and normal, so that the mesh covers the image; two triangles per quad."""
+    h, w = height.shape
+    unit = 2.0 / h
+    cols = np.concatenate([[0.0], np.arange(w) + 0.5, [float(w)]])
+    rows = np.concatenate([[0.0], np.arange(h) + 0.5, [float(h)]])
+    ci = np.concatenate([[0], np.arange(w), [w - 1]])
+    ri = np.concatenate([[0], np.arange(h), [h - 1]])
+    cc, rr = np.meshgrid(cols, rows)
+    pick = np.ix_(ri, ci)
+    n = np.asarray(normals, dtype=np.float64)[pick]
+    vertex = np.zeros(cc.shape, dtype=[(c, "<f4") for c in ("x", "y", "z", "nx", "ny", "nz",
+                                                             "u", "v")])
+    vertex["x"], vertex["y"] = (cc - w / 2) * unit, (h / 2 - rr) * unit
+    vertex["z"] = np.asarray(height, dtype=np.float64)[pick] * unit
+    vertex["nx"], vertex["ny"], vertex["nz"] = n[..., 0], n[..., 1], n[..., 2]
+    vertex["u"], vertex["v"] = cc / w, 1.0 - rr / h
+    nr, nc = cc.shape
+    idx = np.arange(nr * nc).reshape(nr, nc)
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.zeros(2 * len(a), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"] = 3
+    # counter-clockwise seen from the camera (+z): rows go down the image
+    faces["i"][0::2] = np.stack([a, c, b], axis=1)
+    faces["i"][1::2] = np.stack([b, c, d], axis=1)
+    header = ("ply\nformat binary_little_endian 1.0\ncomment mitsuba-powder relief\n"
+              f"element vertex {nr * nc}\n"
+              + "".join(f"property float {c}\n" for c in ("x", "y", "z", "nx", "ny", "nz",
+                                                          "u", "v"))
+              + f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
+              "end_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(vertex.ravel().tobytes())
+        f.write(faces.tobytes())
+
+
 def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Path,
                   pixel_size: float | None = None,
-                  light_distance: float | None = None) -> list[Path]:
+                  light_distance: float | None = None, shadows: bool | None = None,
+                  render: dict | None = None) -> list[Path]:
     """One predicted image per line of ``lights_lp``, with the fitted capture's encoding and
     bit depth (PNG 8 bit sRGB when the capture is not recorded), written under ``out_dir`` only.
 
@@ -358,7 +463,11 @@ def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Pa
     The ``.lp`` vectors are directions (at the fit's light distance unless ``light_distance``
     is given, image widths), or, when a pixel size is known (``pixel_size``, default the fit's),
     directions if all are unit and light positions (each its own distance) if none is; the
-    gains are the fit's gain model's.
+    gains are the fit's gain model's. The images are the per-pixel model's, shaded by the
+    fit's relief (``shadows``: default when the fit was made with it,
+    ``shadows="relief"``), or, with ``render``
+    (``spp``, ``variant``: :func:`mitsuba_powder.rti.rendered.render_maps`), the folder's
+    ``scene.xml`` path traced under each light.
 
     Returns:
         The paths written.
@@ -375,7 +484,14 @@ def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Pa
                                        None if size is None else size * width)
         if kind == "directions":
             rig = rig.with_distance(r)
-        images = result.predict(rig.directions, light_distance=rig.distance)
+        if render is None:
+            images = result.predict(rig.directions, light_distance=rig.distance,
+                                    shadows=shadows)
+        else:
+            from .rendered import render_maps
+
+            images = render_maps(maps_dir, result, rig.directions,
+                                 light_distance=rig.distance, **render)
         cap = info.get("capture") or {"encoding": "srgb", "bit_depth": 8, "file_format": "png"}
         like = Capture(images=np.zeros((0, 1, 1, 3), np.float32), directions=rig.directions,
                        names=list(names), encoding=cap["encoding"],

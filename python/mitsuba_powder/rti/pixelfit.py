@@ -149,7 +149,7 @@ def _initial_start(starts: PixelStarts, data: FitData, log: Log
     """Start rows and observation weights: shadows are flagged against the Lambertian
     prediction twice, the second start without them (and with the grain-size search)."""
     g = data.gains
-    wt = (~data.saturated).astype(np.float64)
+    wt = data.usable.astype(np.float64)
     for i in range(2):
         y, n0, refl = starts(g, wt, search=i == 1)
         if data.field is None:

@@ -20,7 +20,12 @@ for, in order; :func:`run_plan` runs them, each handing the next what it found
    alone or with the surface lobe, by cross-validation over held-out lights on a subsample of
    pixels, under the gains found so far (:mod:`mitsuba_powder.rti.selection`);
 5. ``blocks``: every masked pixel, in blocks within the memory budget (one block while the
-   gains are still fitted: they couple every pixel) (:mod:`mitsuba_powder.rti.blocks`).
+   gains are still fitted: they couple every pixel) (:mod:`mitsuba_powder.rti.blocks`);
+6. ``relief`` (``shadows="relief"``, opt-in; the default ``ratio`` has none): the height field
+   of the blocks' normals and its horizon map (:mod:`mitsuba_powder.rti.relief`), then every
+   masked pixel fitted
+   again with each light's visibility over it (the lights below a pixel's horizon left out,
+   the soft edge in the model), and the relief of these normals kept with the maps.
 
 Every stage fits its pixels the same way (:func:`~mitsuba_powder.rti.pixelfit.fit_in_blocks`:
 the Lambertian start, rounds of the per-pixel solver alternated with the gains, the maps). A
@@ -59,6 +64,7 @@ from .exposure import (
 from .inputs import FitInputs, check_inputs
 from .options import FitOptions
 from .pixelfit import Log, fit_in_blocks
+from .relief import make_relief
 from .result import MapsResult
 from .selection import choose_free, free_candidates
 
@@ -127,6 +133,8 @@ def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
         # (after the gains' subsample: the choice relights held-out lights at those gains)
         stages.append(Stage("free choice", subsample_mask(inputs.mask), choose_free_set))
     stages.append(Stage("blocks", inputs.mask, fit_blocks))
+    if options.shadows == "relief":
+        stages.append(Stage("relief", inputs.mask, fit_with_relief))
     return FitPlan(inputs, tuple(stages))
 
 
@@ -281,6 +289,31 @@ def fit_blocks(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> Fi
     """Stage ``blocks``: every pixel of the stage, in blocks within the memory budget."""
     return replace(state, result=fit_in_blocks(inputs, stage.pixels, state.options,
                                                state.gains, state.light_distance, log))
+
+
+def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
+                    ) -> FitState:
+    """Stage ``relief``: the relief of the maps so far, every pixel of the stage fitted again
+    under its visibility, and the relief of the new normals kept with them."""
+    t0 = time.perf_counter()
+    first = state.result
+    relief = make_relief(first.normals, first.residual_rms, first.mask,
+                         inputs.options.light_size)
+    seconds = time.perf_counter() - t0
+    shadowed = relief.visibility(inputs.d, first.mask) < 0.5 if np.all(
+        np.isinf(state.light_distance)) else None
+    log(f"relief: heights {np.ptp(relief.height[first.mask]):.4g} px from lowest to highest, "
+        f"height field and horizon map in {seconds:.1f} s" + (
+            "" if shadowed is None else f", {int(shadowed.sum())} observations below the "
+            "horizon") + "; every pixel fitted again under its lights' visibility")
+    result = fit_in_blocks(replace(inputs, relief=relief), stage.pixels, state.options,
+                           state.gains, state.light_distance, log)
+    t1 = time.perf_counter()
+    result.relief = make_relief(result.normals, result.residual_rms, result.mask,
+                                inputs.options.light_size)
+    result.fit_settings.update(relief_seconds=seconds + time.perf_counter() - t1,
+                               shadows="relief", light_size=inputs.options.light_size)
+    return replace(state, result=result)
 
 
 def check_finite(result: MapsResult) -> MapsResult:

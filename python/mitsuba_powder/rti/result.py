@@ -8,9 +8,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .forward import MAX_LANES, VARIANT, render_capture
+from .checks import check_directions
+from .forward import MAX_LANES, VARIANT, near_field, render_capture
 from .gains import GainModel
 from .properties import GRAIN_MAPS
+from .relief import Relief
 
 __all__ = ["MapsResult", "relight"]
 
@@ -39,6 +41,10 @@ class MapsResult:
             lights' residuals): the gain of a light when none is given; None: the exposure.
         exposure: the lights' irradiance scale (given or fitted): the gain of a light when
             none is given and there is no gain model.
+        relief: the relief integrated from the normals with its horizon map
+            (:mod:`mitsuba_powder.rti.relief`; fits with ``shadows="relief"``, and fit-maps'
+            ``ratio`` fits, unused by the fit): relit images of a ``relief`` fit are shaded
+            by it; None: no cast shadows.
     """
 
     normals: np.ndarray
@@ -55,6 +61,7 @@ class MapsResult:
     light_distance: float | np.ndarray = math.inf
     gain_model: GainModel | None = None
     exposure: float = 1.0
+    relief: Relief | None = None
 
     @property
     def n_parameters(self) -> int:
@@ -76,10 +83,12 @@ class MapsResult:
         return out
 
     def predict(self, directions: np.ndarray, gains: np.ndarray | None = None,
-                light_distance: float | np.ndarray | None = None) -> np.ndarray:
+                light_distance: float | np.ndarray | None = None,
+                shadows: bool | None = None) -> np.ndarray:
         """Relit images float32 (K', H, W, 3) under ``directions`` (K', 3); see :func:`relight`.
         """
-        return relight(self, directions, gains, light_distance=light_distance)
+        return relight(self, directions, gains, light_distance=light_distance,
+                       shadows=shadows)
 
     def light_gains(self, directions: np.ndarray) -> np.ndarray:
         """(K',) gains of lights at ``directions``: the gain model's (a fitted light's own
@@ -90,8 +99,8 @@ class MapsResult:
 
 
 def relight(result: MapsResult, directions: np.ndarray, gains: np.ndarray | None = None,
-            max_lanes: int = MAX_LANES, light_distance: float | np.ndarray | None = None
-            ) -> np.ndarray:
+            max_lanes: int = MAX_LANES, light_distance: float | np.ndarray | None = None,
+            shadows: bool | None = None) -> np.ndarray:
     """The fitted surface under new lights: :func:`mitsuba_powder.rti.render_capture` with the
     fitted maps.
 
@@ -102,6 +111,9 @@ def relight(result: MapsResult, directions: np.ndarray, gains: np.ndarray | None
             gain model at these directions, the exposure without one).
         light_distance: the new lights' distance in image widths (a number or (K',));
             default: the fit's when it is one number (``inf`` for per-light distances).
+        shadows: shade each pixel by the lights' visibility over the fit's relief (cast
+            shadows, :mod:`mitsuba_powder.rti.relief`); default: when the fit was made with
+            them (``shadows="relief"``); a relief kept by a ``ratio`` fit is used when asked.
 
     Returns:
         float32 (K', H, W, 3) radiance (the capture's linear units); 0 outside the mask.
@@ -113,5 +125,14 @@ def relight(result: MapsResult, directions: np.ndarray, gains: np.ndarray | None
         gains = result.light_gains(directions)
     out = render_capture(result.as_maps(), directions, gains, result.variant, max_lanes,
                          light_distance)
+    if shadows is None:
+        shadows = result.relief is not None and result.fit_settings.get("shadows") == "relief"
+    if shadows:
+        if result.relief is None:
+            raise ValueError("shadows = True needs a fit with a relief (shadows='relief')")
+        field = near_field(check_directions(directions), light_distance, result.mask.shape)
+        vis = result.relief.visibility(check_directions(directions) if field is None
+                                       else field[0])
+        out *= vis.T.reshape(out.shape[:3])[..., None]
     out[:, ~result.mask] = 0.0
     return out

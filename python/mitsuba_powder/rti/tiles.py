@@ -396,6 +396,11 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
     options = _options_of(options, fit)
     size = check_tile_size(tile_size, options.name("tile_size"))
     _check_tiled(options)
+    if options.given.get("shadows") == "relief":
+        raise ValueError(f"{options.name('shadows')} = 'relief' is not supported with tiles "
+                         "(each tile would integrate a relief cut at its edges); tiled fits "
+                         "use the ratio test (shadows = 'ratio')")
+    options = options.replace(shadows="ratio")
     plan = _plan(capture, encoding, mask, options)
     out = Path(out_dir)
     with open_client(client, scheduler, workers,

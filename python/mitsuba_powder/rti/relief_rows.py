@@ -1,0 +1,95 @@
+"""The powder model's rows of a held-out-light comparison (``compare-maps``,
+:func:`mitsuba_powder.rti.comparison.compare`):
+
+* ``powder``: the per-pixel fit of ``fit-maps`` without a relief (``shadows="ratio"``: the
+  observations far below the model left out), relit by the per-pixel model;
+* ``powder_shadows``: the fit with its relief (``shadows="relief"``, ``fit-maps``' default),
+  relit by the per-pixel model shaded by each held-out light's visibility over the relief;
+* ``powder_rendered``: the same fit, relit by Mitsuba path tracing the relief's mesh with the
+  powder BSDF (:mod:`mitsuba_powder.rti.rendered`: cast shadows and interreflections), at
+  the given samples per pixel and variant.
+
+``powder_shadows`` and ``powder_rendered`` share one fit per protocol. With a reference card's
+calibration (``compare-maps --reference``, :mod:`mitsuba_powder.rti.reference`) every row's fit
+holds its lights' relative gains from the card and relights the held-out lights at their
+irradiance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .options import FitOptions
+from .plan import run_fit
+
+__all__ = ["POWDER_ROWS", "light_indices", "powder_fitters"]
+
+#: The powder model's rows
+POWDER_ROWS = ("powder", "powder_shadows", "powder_rendered")
+
+
+def light_indices(all_directions: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The rows of ``all_directions`` (K, 3) that ``directions`` (K', 3) are."""
+    diff = np.abs(directions[:, None, :] - all_directions[None, :, :]).max(axis=2)
+    return np.argmin(diff, axis=1)
+
+
+class _Predictor:
+    """A fit relit by its per-pixel model or rendered
+    (:func:`mitsuba_powder.rti.rendered.render_result`; ``render`` not None), at each light's
+    irradiance from a reference card (``calibration``) or the fit's own gains."""
+
+    def __init__(self, result, render: dict | None = None, calibration: dict | None = None):
+        self.result, self.render, self.calibration = result, render, calibration
+        self.n_parameters = result.n_parameters
+
+    def predict(self, directions: np.ndarray) -> np.ndarray:
+        cal = self.calibration
+        gains = None if cal is None else \
+            cal["irradiance"][light_indices(cal["directions"], directions)]
+        if self.render is None:
+            return self.result.predict(directions, gains=gains)
+        from .rendered import render_result
+
+        return render_result(self.result, directions, gains=gains, **self.render)
+
+
+def powder_fitters(names: Sequence[str], options: FitOptions, render: dict | None = None,
+                   calibration: dict | None = None) -> dict:
+    """The comparison's fitters (``fit(images, directions, mask) -> predictor``) of the powder
+    rows ``names`` (module docstring), fitted with ``options`` (their ``shadows`` set per
+    row); ``render``: :func:`~mitsuba_powder.rti.rendered.render_maps`' ``spp`` and
+    ``variant``; ``calibration``: a reference card's ``directions`` (K, 3) of the whole
+    capture, their relative ``gains`` (K,) and ``irradiance`` (K,), or None."""
+    from dataclasses import replace
+
+    cache: dict = {}
+
+    def fit(images, directions, mask, shadows: str):
+        opts = options.replace(shadows=shadows)
+        if calibration is not None:
+            idx = light_indices(calibration["directions"], directions)
+            opts = opts.replace(gains=replace(opts.gains, initial=calibration["gains"][idx]))
+        return run_fit(images, directions, opts, mask)
+
+    def with_relief(images, directions, mask=None):
+        key = (np.asarray(directions).tobytes(), images.shape)
+        if key not in cache:
+            cache.clear()
+            cache[key] = fit(images, directions, mask, "relief")
+        return cache[key]
+
+    fitters = {
+        "powder": lambda images, directions, mask=None: _Predictor(
+            fit(images, directions, mask, "ratio"), None, calibration),
+        "powder_shadows": lambda images, directions, mask=None: _Predictor(
+            with_relief(images, directions, mask), None, calibration),
+        "powder_rendered": lambda images, directions, mask=None: _Predictor(
+            with_relief(images, directions, mask), dict(render or {}), calibration),
+    }
+    unknown = [n for n in names if n not in fitters]
+    if unknown:
+        raise ValueError(f"powder rows {unknown} are not known; choose among {POWDER_ROWS}")
+    return {n: fitters[n] for n in names}
