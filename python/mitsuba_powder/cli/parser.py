@@ -368,7 +368,7 @@ def _add_fit_options(p: argparse.ArgumentParser, model: str = "") -> None:
 
 def _add_shadow_options(p: argparse.ArgumentParser) -> None:
     """The fit's cast shadows (docs/rti.md, "Relief and cast shadows")."""
-    p.add_argument("--shadows", default=None, metavar="{relief,ratio}",
+    p.add_argument("--shadows", default=None, metavar="{ratio,relief}",
                    help="ratio (default): flag observations far below the model only; "
                         "relief (untiled): integrate the relief from the fitted normals and "
                         "fit every pixel again under each light's visibility over it "

@@ -1,10 +1,12 @@
 """The powder model's rows of a held-out-light comparison (``compare-maps``,
 :func:`mitsuba_powder.rti.comparison.compare`):
 
-* ``powder``: the per-pixel fit of ``fit-maps`` without a relief (``shadows="ratio"``: the
-  observations far below the model left out), relit by the per-pixel model;
-* ``powder_shadows``: the fit with its relief (``shadows="relief"``, ``fit-maps``' default),
-  relit by the per-pixel model shaded by each held-out light's visibility over the relief;
+* ``powder``: the per-pixel fit of ``fit-maps`` without a relief (``shadows="ratio"``,
+  ``fit-maps``' default: the observations far below the model left out), relit by the
+  per-pixel model;
+* ``powder_shadows``: the fit with its relief (``shadows="relief"``, ``fit-maps --shadows
+  relief``), relit by the per-pixel model shaded by each held-out light's visibility over the
+  relief;
 * ``powder_rendered``: the same fit, relit by Mitsuba path tracing the relief's mesh with the
   powder BSDF (:mod:`mitsuba_powder.rti.rendered`: cast shadows and interreflections), at
   the given samples per pixel and variant.
