@@ -219,6 +219,12 @@ def test_api_tiled_fit_refuses_lights_at_a_distance(capture_lp, tmp_path):
     assert not (tmp_path / "maps").exists()
 
 
+def test_api_tiled_fit_refuses_the_relief(capture_lp, tmp_path):
+    with pytest.raises(ValueError, match="shadows = 'relief' is not supported with tiles"):
+        fit_maps_tiled(capture_lp, tmp_path / "maps", 16, shadows="relief")
+    assert not (tmp_path / "maps").exists()
+
+
 def test_cli_tiled_fit_writes_maps_and_resumes(capture_lp, tmp_path, capsys):
     out = tmp_path / "maps"
     args = ["fit-maps", str(capture_lp), "--out", str(out), "--encoding", "linear",

@@ -396,11 +396,6 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
     options = _options_of(options, fit)
     size = check_tile_size(tile_size, options.name("tile_size"))
     _check_tiled(options)
-    if options.given.get("shadows") == "relief":
-        raise ValueError(f"{options.name('shadows')} = 'relief' is not supported with tiles "
-                         "(each tile would integrate a relief cut at its edges); tiled fits "
-                         "use the ratio test (shadows = 'ratio')")
-    options = options.replace(shadows="ratio")
     plan = _plan(capture, encoding, mask, options)
     out = Path(out_dir)
     with open_client(client, scheduler, workers,
@@ -422,13 +417,17 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
 
 def _options_of(options: FitOptions | None, fit: dict) -> FitOptions:
     """The tiled fit's options: ``options`` as given, or built from the keywords ``fit``
-    (not both)."""
+    (not both), with the ratio test for shadows (no relief)."""
     if options is None:
-        return fit_options(**fit)
-    if fit:
+        options = fit_options(**fit)
+    elif fit:
         raise ValueError(f"give the fit's options as options or as keywords, not both (got "
                          f"options and {sorted(fit)})")
-    return options
+    if options.given.get("shadows") == "relief":
+        raise ValueError(f"{options.name('shadows')} = 'relief' is not supported with tiles "
+                         "(each tile would integrate a relief cut at its edges); tiled fits "
+                         "use the ratio test (shadows = 'ratio')")
+    return options.replace(shadows="ratio")
 
 
 def _given_exposure(plan: _Plan, held: np.ndarray) -> dict:
