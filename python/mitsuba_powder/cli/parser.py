@@ -373,9 +373,14 @@ def _add_shadow_options(p: argparse.ArgumentParser) -> None:
                         "relief (untiled): integrate the relief from the fitted normals and "
                         "fit every pixel again under each light's visibility over it "
                         "(docs/rti.md says why it is not the default)")
+    _add_light_size(p)
+
+
+def _add_light_size(p: argparse.ArgumentParser, who: str = "") -> None:
+    """``--light-size``: the soft edge of cast shadows (``who``: the rows it applies to)."""
     p.add_argument("--light-size", default=None, metavar="DEG",
-                   help="the lights' angular radius, degrees (0-45; default 0.5): the soft "
-                        "edge of cast shadows")
+                   help=f"{who}the lights' angular radius, degrees (0-45; default 0.5): the "
+                        "soft edge of cast shadows")
 
 
 def _add_render_options(p: argparse.ArgumentParser, what: str) -> None:
@@ -439,9 +444,7 @@ def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
                         "(the per-pixel powder fit of fit-maps without a relief), "
                         "powder_shadows (with its relief's cast shadows), powder_rendered "
                         "(that fit's relief path traced by Mitsuba)")
-    p.add_argument("--light-size", default=None, metavar="DEG",
-                   help="powder_shadows, powder_rendered: the lights' angular radius, "
-                        "degrees (0-45; default 0.5)")
+    _add_light_size(p, "powder_shadows, powder_rendered: ")
     _add_render_options(p, "powder_rendered")
     _add_fit_options(p, "powder model: ")
     p.set_defaults(shadows=None)  # set per powder row

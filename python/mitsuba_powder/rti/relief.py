@@ -83,6 +83,23 @@ def _slopes(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return zx, zrow
 
 
+def _dct_preconditioner(h: int, w: int, weight: float, scale: float):
+    """The height field's preconditioner: the uniform-weight (``weight``) Neumann Laplacian
+    of an (h, w) grid, its constant mode at ``scale``, solved exactly by a DCT."""
+    from scipy.fft import dctn, idctn
+
+    ky = 2.0 - 2.0 * np.cos(np.pi * np.arange(h) / h)
+    kx = 2.0 - 2.0 * np.cos(np.pi * np.arange(w) / w)
+    eig = (ky[:, None] + kx[None, :]) * weight
+    eig[0, 0] = scale  # the constant mode
+
+    def precond(r: np.ndarray) -> np.ndarray:
+        c = dctn(r.reshape(h, w), type=2, norm="ortho")
+        return idctn(c / eig, type=2, norm="ortho").ravel()
+
+    return precond
+
+
 def integrate_normals(normals: np.ndarray, weights: np.ndarray | None = None,
                       tol: float = 1e-8, max_iterations: int = 500) -> np.ndarray:
     """The height field (H, W) float64 in pixel units whose normals best fit ``normals``
@@ -92,7 +109,6 @@ def integrate_normals(normals: np.ndarray, weights: np.ndarray | None = None,
         ValueError: shapes that do not match, non-positive or non-finite weights.
     """
     import scipy.sparse as sp
-    from scipy.fft import dctn, idctn
     from scipy.sparse.linalg import LinearOperator, cg
 
     n = np.asarray(normals)
@@ -129,16 +145,7 @@ def integrate_normals(normals: np.ndarray, weights: np.ndarray | None = None,
         return lap @ z + scale * pw * (pw @ z) * (h * w)
 
     op = LinearOperator((h * w, h * w), matvec=matvec, dtype=np.float64)
-    # preconditioner: the uniform-weight Neumann Laplacian (scaled), solved exactly by DCT
-    ky = 2.0 - 2.0 * np.cos(np.pi * np.arange(h) / h)
-    kx = 2.0 - 2.0 * np.cos(np.pi * np.arange(w) / w)
-    eig = (ky[:, None] + kx[None, :]) * float(np.median(we))
-    eig[0, 0] = scale * h * w / (h * w)  # the constant mode
-
-    def precond(r):
-        c = dctn(r.reshape(h, w), type=2, norm="ortho")
-        return idctn(c / eig, type=2, norm="ortho").ravel()
-
+    precond = _dct_preconditioner(h, w, float(np.median(we)), scale)
     pre = LinearOperator((h * w, h * w), matvec=precond, dtype=np.float64)
     z0 = precond(rhs)
     z, info = cg(op, rhs, x0=z0, rtol=tol, atol=0.0, maxiter=max_iterations, M=pre)
