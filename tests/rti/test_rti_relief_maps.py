@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import write_image_capture
 from mitsuba_powder.cli import main
-from mitsuba_powder.rti import Capture, load_capture, write_images, write_lp
+from mitsuba_powder.rti import load_capture
 from mitsuba_powder.rti.maps import read_maps
 from mitsuba_powder.rti.synthetic import synthetic_capture
 
@@ -18,11 +19,7 @@ def capture_dir(tmp_path_factory) -> Path:
     """A SYNTHETIC capture on disk: 16 x 20 px, 24 lights, 16-bit PNG, linear encoding."""
     folder = tmp_path_factory.mktemp("capture")
     cap = synthetic_capture(16, 20, lights=24, noise=0.005, seed=3)
-    names = [f"light{k:02d}.png" for k in range(len(cap["directions"]))]
-    write_lp(folder / "capture.lp", names, cap["directions"])
-    like = Capture(images=cap["images"], directions=cap["directions"], names=names,
-                   encoding="linear", file_format="png", bit_depth=16)
-    write_images(like, cap["images"], names, folder)
+    write_image_capture(folder, cap["images"], cap["directions"], "linear", 16)
     return folder
 
 
@@ -33,7 +30,7 @@ def read_ply_header(path: Path) -> list[str]:
 
 def test_fit_maps_writes_the_relief_and_relight_renders_it(capture_dir, tmp_path):
     out = tmp_path / "maps"
-    assert main(["fit-maps", str(capture_dir / "capture.lp"), "--out", str(out),
+    assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(out),
                  "--encoding", "linear", "--rounds", "1", "--iterations", "15",
                  "--shadows", "relief"]) == 0
     info = json.loads((out / "fit.json").read_text())
@@ -48,12 +45,12 @@ def test_fit_maps_writes_the_relief_and_relight_renders_it(capture_dir, tmp_path
     # per-pixel relight (shaded by the relief) and the rendered relief agree where little
     # shades: the capture's bumps are shallow
     relit, rendered = tmp_path / "relit", tmp_path / "rendered"
-    lp = capture_dir / "capture.lp"
+    lp = capture_dir / "dirs.lp"
     assert main(["relight", str(out), "--lp", str(lp), "--out", str(relit)]) == 0
     assert main(["relight", str(out), "--lp", str(lp), "--out", str(rendered), "--render",
                  "--spp", "16"]) == 0
-    a = load_capture(relit / "capture.lp", encoding="linear").images
-    b = load_capture(rendered / "capture.lp", encoding="linear").images
+    a = load_capture(relit / "dirs.lp", encoding="linear").images
+    b = load_capture(rendered / "dirs.lp", encoding="linear").images
     assert abs(float(b.mean() / a.mean()) - 1) < 0.02
     original = load_capture(lp, encoding="linear").images
     assert float(np.sqrt(np.mean((a - original) ** 2))) < 0.02
@@ -63,18 +60,18 @@ def test_fit_maps_default_ratio_keeps_the_relief_unused(capture_dir, tmp_path):
     """The default (--shadows ratio) writes the relief too; relight shades by it only when
     asked (relight --shadows)."""
     out = tmp_path / "maps"
-    assert main(["fit-maps", str(capture_dir / "capture.lp"), "--out", str(out),
+    assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(out),
                  "--encoding", "linear", "--rounds", "1", "--iterations", "15"]) == 0
     info = json.loads((out / "fit.json").read_text())
     assert info["fit"]["shadows"] == "ratio" and info["relief"]["height"] == "relief.exr"
     assert (out / "relief.ply").exists() and 'type="ply"' in (out / "scene.xml").read_text()
-    lp = capture_dir / "capture.lp"
+    lp = capture_dir / "dirs.lp"
     relit = {}
     for flag in ("", "--no-shadows", "--shadows"):
         folder = tmp_path / f"relit{flag}"
         assert main(["relight", str(out), "--lp", str(lp), "--out", str(folder)]
                     + ([flag] if flag else [])) == 0
-        relit[flag] = load_capture(folder / "capture.lp", encoding="linear").images
+        relit[flag] = load_capture(folder / "dirs.lp", encoding="linear").images
     result, _ = read_maps(out)
     d = load_capture(lp, encoding="linear").directions
     np.testing.assert_array_equal(relit[""], relit["--no-shadows"])
@@ -83,17 +80,17 @@ def test_fit_maps_default_ratio_keeps_the_relief_unused(capture_dir, tmp_path):
 
 
 def test_bad_shadow_options_are_named(capture_dir, tmp_path, capsys):
-    assert main(["fit-maps", str(capture_dir / "capture.lp"), "--out", str(tmp_path / "o"),
+    assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(tmp_path / "o"),
                  "--shadows", "none"]) == 2
     assert "--shadows = 'none'" in capsys.readouterr().err
-    assert main(["fit-maps", str(capture_dir / "capture.lp"), "--out", str(tmp_path / "o"),
+    assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(tmp_path / "o"),
                  "--light-size", "60"]) == 2
     assert "--light-size = 60" in capsys.readouterr().err
 
 
 def test_compare_maps_powder_rows(capture_dir, tmp_path):
     out = tmp_path / "compare"
-    assert main(["compare-maps", str(capture_dir / "capture.lp"), "--out", str(out),
+    assert main(["compare-maps", str(capture_dir / "dirs.lp"), "--out", str(out),
                  "--encoding", "linear", "--models",
                  "powder,powder_shadows,powder_rendered", "--spp", "8",
                  "--no-error-images"]) == 0
