@@ -50,7 +50,7 @@ CASES = {
                          "gain_spread = 0.1 needs gain_model = 'smooth' (it is 'none')", None),
     "exposure": (["--exposure", "0"], lambda c: _fit(c, exposure=0),
                  "exposure = 0 is out of range; valid range is (0, inf) (the lights' "
-                 "irradiance scale), or 'fit'", None),
+                 "irradiance scale), or 'fit'", "--exposure"),
     "memory": (["--memory-gb", "0"], lambda c: _fit(c, memory_gb=0),
                "memory_gb = 0 is out of range; valid range is [0.015625, inf) GiB", "--memory-gb"),
     "memory_text": (["--memory-gb", "lots"], lambda c: _fit(c, memory_gb="lots"),

@@ -18,7 +18,8 @@ from .common import _fixed_properties, _names
 
 #: How messages name the fit's options given by a flag of another name
 FLAGS = {"light_distance": "--light-distance", "memory_gb": "--memory-gb",
-         "saturation": "--saturation", "shadows": "--shadows", "light_size": "--light-size",
+         "saturation": "--saturation", "exposure": "--exposure",
+         "shadows": "--shadows", "light_size": "--light-size",
          "gain_subsample": "--gain-pixels", "tile_size": "--tile-size", "workers": "--workers",
          "scheduler": "--scheduler"}
 
