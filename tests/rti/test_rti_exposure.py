@@ -85,6 +85,10 @@ def test_uncalibrated_capture_defaults_find_the_exposure(default_fit, capture):
     assert np.median(err) <= 0.5
     assert np.sqrt(np.nanmean(res.residual_rms ** 2)) <= 1.2 * NOISE
     assert any(line.startswith("exposure: polished") for line in lines)
+    # the held-out lights do not contradict it: kept, both scores recorded
+    check = record["held_out"]
+    assert check["cv_rms_fitted"] <= check["cv_rms_exposure_1"] * (1 + check["margin"])
+    assert any("relights held-out lights at" in line and "kept" in line for line in lines)
 
 
 def test_a_given_exposure_is_not_scanned(capture):
@@ -130,6 +134,51 @@ def test_a_dark_noisy_capture_does_not_determine_its_exposure():
     assert record["value"] == 1.0 and res.exposure == 1.0 and record["best"] > 0
     assert any("does NOT determine the exposure" in line and "exposure 1 is kept" in line
                for line in lines)
+
+
+def test_an_exposure_the_held_out_lights_contradict_is_not_determined():
+    """The plan's ``exposure check``: a capture at exposure 1.52 whose scan had (wrongly)
+    found 4, as a clay's non-powder shape made it find 6.15 on RealRTI item 8: the maps fitted
+    at 4 relight the held-out lights worse than at exposure 1, so the capture does not
+    determine it and exposure 1 is kept, with both scores recorded; the true exposure is
+    kept."""
+    from dataclasses import replace
+
+    from mitsuba_powder.rti.options import fit_options
+    from mitsuba_powder.rti.pixelfit import Log
+    from mitsuba_powder.rti.plan import FitState, check_exposure, make_plan
+    from mitsuba_powder.variants import use_variant
+
+    cap = uncalibrated(size=16)
+    plan = make_plan(cap["images"], cap["directions"], fit_options(
+        free=["albedo", "amplitude_surface", "correlation_length"]))
+    stage = next(s for s in plan.stages if s.name == "exposure check")
+    wrong = {"value": 4.0, "sigma": 0.05, "source": "fitted", "determined": True}
+    state = FitState(np.inf, plan.inputs.options, 4.0 * plan.inputs.gains, exposure=wrong)
+    lines = []
+    with use_variant(plan.inputs.options.variant):
+        checked = check_exposure(plan.inputs, stage, state, Log(lines.append))
+        right = check_exposure(plan.inputs, stage, replace(
+            state, gains=EXPOSURE * plan.inputs.gains, exposure={**wrong, "value": EXPOSURE}),
+            Log())
+    record = checked.exposure
+    assert not record["determined"] and record["value"] == 1.0 and record["sigma"] is None
+    check = record["held_out"]
+    assert check["cv_rms_exposure_1"] < check["cv_rms_fitted"] * (1 - check["margin"])
+    np.testing.assert_allclose(checked.gains, plan.inputs.gains)
+    assert any("does NOT determine the exposure" in line for line in lines)
+    assert right.exposure["determined"] and right.exposure["value"] == EXPOSURE
+    np.testing.assert_allclose(right.gains, EXPOSURE * plan.inputs.gains)
+    check = right.exposure["held_out"]
+    assert check["cv_rms_fitted"] < 1.5 * NOISE
+
+
+@pytest.mark.parametrize(("fitted", "unit", "expected"),
+                         [(1.0, 0.98, True), (1.0, 0.995, False), (1.0, 1.2, False)])
+def test_contradicted_margin(fitted, unit, expected):
+    from mitsuba_powder.rti.exposure import contradicted
+
+    assert contradicted(fitted, unit) is expected
 
 
 def test_uncertainty_from_the_cost_curvature():

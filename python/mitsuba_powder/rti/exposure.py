@@ -26,10 +26,19 @@ scattering dominates: the shape no longer changes), well where it is high.
    ``sigma_x = sqrt(cost_min / (N a))`` (``a`` the parabola's curvature, ``N`` the
    observations used times :data:`MEDIAN_EFFICIENCY`); ``sigma_e = e sigma_x``.
 
+4. **check** (the plan's ``exposure check``, after the free choice; :func:`contradicted`):
+   the maps of the subsample fitted at the exposure found and at exposure 1 relight the
+   held-out lights of the free choice's folds (:func:`~mitsuba_powder.rti.selection.held_out_rms`);
+   where exposure 1 relights them better by more than :data:`HELD_OUT_MARGIN`, the shape that
+   set the exposure is not a powder's (RealRTI item 8, a clay relief: a clear minimum at 6.15
+   +- 0.11 whose maps relit the held-out lights at 9.99 levels against 8.83 at exposure 1)
+   and the capture does not determine it. The held-out score is a check, not the estimate:
+   on the SYNTHETIC capture it is too flat to find the exposure (docs/rti.md).
+
 The capture **does not determine** its exposure (:func:`determined`) when the best point is at
 an end of the scan, the parabola does not curve upwards or has its vertex outside the
-evaluations, or ``sigma_e / e`` exceeds
-:data:`UNDETERMINED`; the fit then says so and keeps the exposure at 1 (the images' own scale,
+evaluations, ``sigma_e / e`` exceeds :data:`UNDETERMINED`, or the held-out lights contradict
+it (step 4); the fit then says so and keeps the exposure at 1 (the images' own scale,
 what the fit assumed before it fitted the exposure; the best of the scan is recorded): a best
 at the scan's end is no estimate (on RealRTI's clay reliefs the cost falls on towards albedo 0,
 where the powder's shape relit grazing light worse). Give the exposure or a reference target to
@@ -44,8 +53,8 @@ import numpy as np
 
 from .starts import lambertian_start
 
-__all__ = ["MEDIAN_EFFICIENCY", "POLISH_EVALUATIONS", "POLISH_WIDTH", "SCAN_LOG2",
-           "UNDETERMINED", "determined",
+__all__ = ["HELD_OUT_MARGIN", "MEDIAN_EFFICIENCY", "POLISH_EVALUATIONS", "POLISH_WIDTH",
+           "SCAN_LOG2", "UNDETERMINED", "contradicted", "determined",
            "exposure_anchor", "exposure_grid", "exposure_uncertainty"]
 
 #: The scan's grid of ``log2(e / anchor)``: from half the anchor (the bright pixels would be
@@ -62,6 +71,9 @@ POLISH_EVALUATIONS = 8
 MEDIAN_EFFICIENCY = 2 / math.pi
 #: Relative 1-sigma of the exposure above which the capture does not determine it
 UNDETERMINED = 0.1
+#: The fraction by which exposure 1 must relight held-out lights better than the exposure
+#: found for the capture not to determine it (:func:`contradicted`)
+HELD_OUT_MARGIN = 0.01
 
 
 def exposure_anchor(obs: np.ndarray, wt: np.ndarray, directions: np.ndarray,
@@ -117,3 +129,12 @@ def determined(x: float, sigma_x: float, grid: np.ndarray, scan: np.ndarray | No
     if scan is not None and int(np.argmin(scan)) in (0, len(grid) - 1):
         return False
     return bool(inside and math.isfinite(sigma_x) and math.expm1(sigma_x) <= UNDETERMINED)
+
+
+def contradicted(held_out_fitted: float, held_out_unit: float,
+                 margin: float = HELD_OUT_MARGIN) -> bool:
+    """Whether the held-out lights contradict the exposure found (module docstring, step 4):
+    the cross-validated RMS of the maps fitted at exposure 1 (``held_out_unit``) below that
+    of the maps fitted at the exposure found (``held_out_fitted``) by more than ``margin``
+    (a fraction)."""
+    return bool(held_out_unit < held_out_fitted * (1.0 - margin))

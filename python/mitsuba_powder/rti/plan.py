@@ -52,10 +52,12 @@ from .distance import (
     subsample_mask,
 )
 from .exposure import (
+    HELD_OUT_MARGIN,
     MEDIAN_EFFICIENCY,
     POLISH_EVALUATIONS,
     POLISH_WIDTH,
     SCAN_LOG2,
+    contradicted,
     determined,
     exposure_anchor,
     exposure_grid,
@@ -66,7 +68,7 @@ from .options import FitOptions
 from .pixelfit import Log, fit_in_blocks
 from .relief import make_relief
 from .result import MapsResult
-from .selection import choose_free, free_candidates
+from .selection import choose_free, free_candidates, held_out_rms
 
 __all__ = ["FitPlan", "FitState", "Stage", "check_finite", "fit_distance", "make_plan",
            "run_fit", "run_plan"]
@@ -132,6 +134,8 @@ def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
     if options.chooses_free and len(free_candidates(options)) > 1:
         # (after the gains' subsample: the choice relights held-out lights at those gains)
         stages.append(Stage("free choice", subsample_mask(inputs.mask), choose_free_set))
+    if options.fits_exposure:
+        stages.append(Stage("exposure check", subsample_mask(inputs.mask), check_exposure))
     stages.append(Stage("blocks", inputs.mask, fit_blocks))
     if options.shadows == "relief":
         stages.append(Stage("relief", inputs.mask, fit_with_relief))
@@ -259,6 +263,38 @@ def scan_exposure(inputs: FitInputs, stage: Stage, state: FitState, log: Log) ->
               "scan": {"exposure": np.exp(grid).tolist(), "cost": costs.tolist(),
                        "polish": [{"exposure": math.exp(a), "cost": b} for a, b in seen]}}
     return replace(state, gains=base * e, exposure=record)
+
+
+def check_exposure(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
+    """Stage ``exposure check``: an exposure the scan determined is kept only if the maps
+    fitted with it relight held-out lights (the free choice's folds, on the stage's pixels)
+    no worse than at exposure 1, within
+    :data:`~mitsuba_powder.rti.exposure.HELD_OUT_MARGIN`
+    (:func:`~mitsuba_powder.rti.exposure.contradicted`); else the capture does not determine
+    it (the shape that set it is not a powder's) and exposure 1 is kept."""
+    record, e = state.exposure, float(state.exposure["value"])
+    if not record.get("determined") or e == 1.0:
+        return state
+    sub, r = stage.pixels, state.light_distance
+    choice = state.free_choice
+    if choice is not None and choice["pixels"] == int(sub.sum()):
+        fitted = next(c["cv_rms"] for c in choice["candidates"]
+                      if tuple(c["free"]) == tuple(choice["chosen"]))
+    else:
+        fitted = held_out_rms(inputs, sub, state.options, state.gains, r)[0]
+    unit = held_out_rms(inputs, sub, state.options, state.gains / e, r)[0]
+    check = {"cv_rms_fitted": fitted, "cv_rms_exposure_1": unit, "margin": HELD_OUT_MARGIN}
+    if not contradicted(fitted, unit):
+        log(f"exposure: {e:.4g} relights held-out lights at {fitted:.4g} (exposure 1: "
+            f"{unit:.4g}); kept")
+        return replace(state, exposure={**record, "held_out": check})
+    log(f"exposure: the capture does NOT determine the exposure: the maps fitted at {e:.4g} "
+        f"relight held-out lights worse ({fitted:.4g}) than at exposure 1 ({unit:.4g}): the "
+        "angular shape that set it is not a powder's; exposure 1 is kept (the images' scale), "
+        "and the albedo and the lobe's amplitude are relative to it; give --exposure or "
+        "--reference to calibrate")
+    record = {**record, "value": 1.0, "sigma": None, "determined": False, "held_out": check}
+    return replace(state, gains=state.gains / e, exposure=record)
 
 
 def choose_free_set(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> FitState:
