@@ -196,7 +196,8 @@ def test_a_fit_checks_its_options_and_capture_once_whatever_its_stages(monkeypat
     plan = plan_module.make_plan(cap["images"], cap["directions"], rf.fit_options(
         fixed=fixed, light_distance="fit", gain_subsample=100, gains="fit"))
     assert [s.name for s in plan.stages] == ["distance scan", "exposure scan",
-                                             "gain subsample", "free choice", "blocks"]
+                                             "gain subsample", "free choice", "exposure check",
+                                             "blocks"]
     assert np.array_equal(plan.stages[-1].pixels, np.ones((16, 16), bool))
     relief = plan_module.make_plan(cap["images"], cap["directions"], rf.fit_options(
         fixed=fixed, light_distance="fit", gain_subsample=100, gains="fit", shadows="relief"))

@@ -181,7 +181,7 @@ class _State:
 
 
 def _fit_chunk(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
-               y_start: np.ndarray, s: slice, with_gains: bool
+               y_start: np.ndarray, s: slice | np.ndarray, with_gains: bool
                ) -> tuple[np.ndarray, np.ndarray] | None:
     """Fit the pixels ``s`` from ``y_start`` under the current gains with the options'
     solver; update ``state``; with ``with_gains`` return their part of the gains' reduced
@@ -220,20 +220,23 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
             # same gains, same flags: this round would repeat the last one exactly
             log(f"{name}: observation flags unchanged, the last round's fit holds")
             continue
+        changed = _changed_pixels(previous, state)
         previous = None if with_gains else state.weights.copy()
         # every round starts from the Lambertian start under the current gains: a warm start
         # would keep pixels in the surface-lobe basin the previous gains led them to
         y_start = starts(state.gains, state.weights)[0] if r > 0 else state.y
         state.iterations, state.at_cap = 0, 0
-        _round(ev, data, layout, state, y_start, with_gains, log)
+        chunks = _round(ev, data, layout, state, y_start, with_gains, log, changed)
         model = state.value * data.light_gains(state.gains)
         if not last:
             state.weights = data.flags(model)
         rms = np.sqrt(np.sum(state.weights[:, :, None] * (model - data.obs) ** 2)
                       / max(3 * np.sum(state.weights), 1))
         cap = data.options.max_iterations
-        log(f"{name}: Levenberg-Marquardt ({len(state.chunks)} chunk(s)), {state.iterations} "
-            f"iterations" + (f" (the cap: {state.at_cap} pixels stopped by it)"
+        again = "" if changed is None else (f" of the {len(changed)} pixels whose observation "
+                                            "flags changed (the others' fit holds)")
+        log(f"{name}: Levenberg-Marquardt{again} ({chunks} chunk(s)), "
+            f"{state.iterations} iterations" + (f" (the cap: {state.at_cap} pixels stopped by it)"
                              if state.at_cap else "")
             + f", RMS residual {rms:.5g}, {int(np.sum(state.weights == 0))} observations left "
             "out")
@@ -241,14 +244,29 @@ def _alternate(ev: PixelEvaluator, starts: PixelStarts, data: FitData, layout: l
     return state
 
 
+def _changed_pixels(previous: np.ndarray | None, state: _State) -> np.ndarray | None:
+    """The pixels a round must fit again when the gains have not moved since the last round
+    (``previous``: its weights, else None): those whose observation flags changed. Every
+    pixel's fit is its own (the Lambertian start and the solver's steps, per pixel), so the
+    others would repeat the last round's exactly. None (fit every pixel) when the gains moved
+    or the last round stopped pixels at the iteration cap (not tracked per pixel)."""
+    if previous is None or state.at_cap:
+        return None
+    return np.flatnonzero(np.any(previous != state.weights, axis=1))
+
+
 def _round(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
-           y_start: np.ndarray, with_gains: bool, log: Log) -> None:
-    """One round: every chunk of pixels fitted from ``y_start``; with ``with_gains`` a
-    Gauss-Newton step of the gains on the reduced system the chunks add up to (their mean
-    held), smoothed by the gains' trend in mode ``smooth``."""
+           y_start: np.ndarray, with_gains: bool, log: Log,
+           pixels: np.ndarray | None = None) -> int:
+    """One round: every chunk of pixels (of ``pixels`` only, if given: indices) fitted from
+    ``y_start``; with ``with_gains`` a Gauss-Newton step of the gains on the reduced system
+    the chunks add up to (their mean held), smoothed by the gains' trend in mode
+    ``smooth``. Returns the chunks fitted."""
     k = len(state.gains)
     reduced = np.zeros((k, k)), np.zeros(k)
-    for s in state.chunks:
+    chunks = state.chunks if pixels is None else [
+        pixels[c] for c in pixel_chunks(len(pixels), 1, state.chunks[0].stop)]
+    for s in chunks:
         part = _fit_chunk(ev, data, layout, state, y_start, s, with_gains)
         if part is not None:
             reduced = reduced[0] + part[0], reduced[1] + part[1]
@@ -264,6 +282,7 @@ def _round(ev: PixelEvaluator, data: FitData, layout: list, state: _State,
         state.information = np.diag(reduced[0]).copy()
         if trend.mode == "smooth":
             state.gains = trend.smooth(data.d, state.gains, state.information, data.scale)
+    return len(chunks)
 
 
 def _numbers(indices: np.ndarray, most: int = 12) -> str:
