@@ -197,11 +197,15 @@ def test_a_fit_checks_its_options_and_capture_once_whatever_its_stages(monkeypat
         fixed=fixed, light_distance="fit", gain_subsample=100, gains="fit"))
     assert [s.name for s in plan.stages] == ["distance scan", "exposure scan",
                                              "gain subsample", "free choice", "exposure check",
-                                             "blocks"]
-    assert np.array_equal(plan.stages[-1].pixels, np.ones((16, 16), bool))
-    relief = plan_module.make_plan(cap["images"], cap["directions"], rf.fit_options(
-        fixed=fixed, light_distance="fit", gain_subsample=100, gains="fit", shadows="relief"))
-    assert [s.name for s in relief.stages][-2:] == ["blocks", "relief"]
+                                             "blocks", "shadows choice", "relief"]
+    assert np.array_equal(plan.stages[5].pixels, np.ones((16, 16), bool))
+    assert np.array_equal(plan.stages[6].pixels, plan.stages[3].pixels)  # the same subsample
+    for shadows, last in (("relief", ["blocks", "relief"]),
+                          ("ratio", ["exposure check", "blocks"])):
+        other = plan_module.make_plan(cap["images"], cap["directions"], rf.fit_options(
+            fixed=fixed, light_distance="fit", gain_subsample=100, gains="fit",
+            shadows=shadows))
+        assert [s.name for s in other.stages][-2:] == last
 
 
 def _counting(func, calls: dict, key: str):

@@ -56,14 +56,16 @@ def test_fit_maps_writes_the_relief_and_relight_renders_it(capture_dir, tmp_path
     assert float(np.sqrt(np.mean((a - original) ** 2))) < 0.02
 
 
-def test_fit_maps_default_ratio_keeps_the_relief_unused(capture_dir, tmp_path):
-    """The default (--shadows ratio) writes the relief too; relight shades by it only when
-    asked (relight --shadows)."""
+def test_fit_maps_ratio_keeps_the_relief_unused(capture_dir, tmp_path):
+    """--shadows ratio writes the relief too; relight shades by it only when asked (relight
+    --shadows)."""
     out = tmp_path / "maps"
     assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(out),
-                 "--encoding", "linear", "--rounds", "1", "--iterations", "15"]) == 0
+                 "--encoding", "linear", "--rounds", "1", "--iterations", "15",
+                 "--shadows", "ratio"]) == 0
     info = json.loads((out / "fit.json").read_text())
     assert info["fit"]["shadows"] == "ratio" and info["relief"]["height"] == "relief.exr"
+    assert info["fit"]["shadows_choice"] is None
     assert (out / "relief.ply").exists() and 'type="ply"' in (out / "scene.xml").read_text()
     lp = capture_dir / "dirs.lp"
     relit = {}
@@ -79,10 +81,39 @@ def test_fit_maps_default_ratio_keeps_the_relief_unused(capture_dir, tmp_path):
     np.testing.assert_allclose(relit["--shadows"], result.predict(d, shadows=True), atol=1e-4)
 
 
+def test_fit_maps_default_chooses_the_shadows(capture_dir, tmp_path, capsys):
+    """The default (--shadows auto) records its choice and both cross-validated errors in
+    fit.json and says them; relight's default follows the choice."""
+    out = tmp_path / "maps"
+    assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(out),
+                 "--encoding", "linear", "--rounds", "1", "--iterations", "15"]) == 0
+    printed = capsys.readouterr().out
+    info = json.loads((out / "fit.json").read_text())
+    choice = info["fit"]["shadows_choice"]
+    assert choice["option"] == "auto" and choice["chosen"] == info["fit"]["shadows"]
+    cv = choice["cv_rms"]
+    assert 0 < cv["ratio"] < 0.05 and 0 < cv["relief"] < 0.05
+    expected = "relief" if cv["relief"] < (1 - choice["margin"]) * cv["ratio"] else "ratio"
+    assert choice["chosen"] == expected
+    assert f"shadows: {expected} (" in printed and "chosen by cross-validation" in printed
+    assert info["relief"]["height"] == "relief.exr"
+    lp = capture_dir / "dirs.lp"
+    folder = tmp_path / "relit"
+    assert main(["relight", str(out), "--lp", str(lp), "--out", str(folder)]) == 0
+    result, _ = read_maps(out)
+    d = load_capture(lp, encoding="linear").directions
+    np.testing.assert_allclose(load_capture(folder / "dirs.lp", encoding="linear").images,
+                               result.predict(d, shadows=expected == "relief"), atol=1e-4)
+
+
 def test_bad_shadow_options_are_named(capture_dir, tmp_path, capsys):
     assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(tmp_path / "o"),
                  "--shadows", "none"]) == 2
-    assert "--shadows = 'none'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--shadows = 'none'" in err and "('auto', 'relief', 'ratio')" in err
+    assert main(["compare-maps", str(capture_dir / "dirs.lp"), "--out", str(tmp_path / "c"),
+                 "--models", "powder", "--shadows", "shade"]) == 2
+    assert "--shadows = 'shade'" in capsys.readouterr().err
     assert main(["fit-maps", str(capture_dir / "dirs.lp"), "--out", str(tmp_path / "o"),
                  "--light-size", "60"]) == 2
     assert "--light-size = 60" in capsys.readouterr().err
@@ -97,6 +128,12 @@ def test_compare_maps_powder_rows(capture_dir, tmp_path):
     rows = json.loads((out / "compare.json").read_text())["rows"]
     got = {(r["model"], r["protocol"]): r["rmse_8bit"] for r in rows}
     assert len(got) == 6 and all(np.isfinite(v) for v in got.values())
+    # each powder row says the shadows its fit used (the powder row: the default, auto)
+    notes = {(r["model"], r["protocol"]): r["note"] for r in rows}
+    assert all(notes[("powder", p)].startswith(("shadows ratio (auto", "shadows relief (auto"))
+               for p in ("interpolation", "grazing")), notes
+    assert notes[("powder_shadows", "grazing")].startswith("shadows relief")
+    assert "- powder: shadows " in (out / "compare.md").read_text()
     # a shallow relief: the rows agree within 15 %
     for protocol in ("interpolation", "grazing"):
         base = got[("powder", protocol)]

@@ -366,14 +366,18 @@ def _add_fit_options(p: argparse.ArgumentParser, model: str = "") -> None:
                         "kernels, default) or numpy (the reference)")
 
 
-def _add_shadow_options(p: argparse.ArgumentParser) -> None:
+def _add_shadow_options(p: argparse.ArgumentParser, who: str = "") -> None:
     """The fit's cast shadows (docs/rti.md, "Relief and cast shadows")."""
-    p.add_argument("--shadows", default=None, metavar="{ratio,relief}",
-                   help="ratio (default): flag observations far below the model only; "
-                        "relief (untiled): integrate the relief from the fitted normals and "
-                        "fit every pixel again under each light's visibility over it "
-                        "(docs/rti.md says why it is not the default)")
-    _add_light_size(p)
+    p.add_argument("--shadows", default=None, metavar="{auto,relief,ratio}",
+                   help=f"{who}auto (default): integrate the relief from the fitted normals "
+                        "and keep its cast shadows where they relight held-out lights better "
+                        "(cross-validated over folds of the lights on a subsample of pixels; "
+                        "the choice in fit.json); relief: always (every pixel fitted again "
+                        "under each light's visibility over the relief); ratio: no relief in "
+                        "the fit, observations far below the model flagged only (tiled fits: "
+                        "always ratio)")
+    if not who:
+        _add_light_size(p)
 
 
 def _add_light_size(p: argparse.ArgumentParser, who: str = "") -> None:
@@ -425,7 +429,8 @@ def _add_relight_parser(sub: argparse._SubParsersAction) -> None:
     shadows.add_argument("--shadows", action="store_true",
                          help="per-pixel model: cast shadows over the fit's relief "
                               "(relief.exr) even where the fit did not use them (default: "
-                              "when it was fitted with --shadows relief)")
+                              "when the fit used them, fit.json's fit.shadows = relief: "
+                              "--shadows relief, or auto where it chose the relief)")
     shadows.add_argument("--no-shadows", action="store_true",
                          help="per-pixel model: no cast shadows even where the fit used them")
     _add_render_options(p, "--render")
@@ -441,13 +446,14 @@ def _add_compare_maps_parser(sub: argparse._SubParsersAction) -> None:
     _add_capture_options(p, "scored")
     p.add_argument("--models", default="ptm,hsh,lambertian,lambertian_clamped",
                    help="comma-separated: ptm, hsh, lambertian, lambertian_clamped, powder "
-                        "(the per-pixel powder fit of fit-maps without a relief), "
-                        "powder_shadows (with its relief's cast shadows), powder_rendered "
-                        "(that fit's relief path traced by Mitsuba)")
-    _add_light_size(p, "powder_shadows, powder_rendered: ")
+                        "(the per-pixel powder fit of fit-maps with --shadows, default auto, "
+                        "relit as relight does), powder_shadows (the fit with its relief's "
+                        "cast shadows always, --shadows relief), powder_rendered (that fit's "
+                        "relief path traced by Mitsuba)")
+    _add_shadow_options(p, "powder row: ")
+    _add_light_size(p, "powder rows with a relief: ")
     _add_render_options(p, "powder_rendered")
     _add_fit_options(p, "powder model: ")
-    p.set_defaults(shadows=None)  # set per powder row
     p.add_argument("--phase", type=int, default=4,
                    help="interpolation protocol: hold out the lights k %% 5 == PHASE (.lp "
                         "order from 0; default 4)")

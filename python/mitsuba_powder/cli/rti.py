@@ -166,9 +166,10 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
 
 
 def _keep_relief(result, options) -> None:
-    """A fit with the ratio test (``--shadows ratio``, the default) keeps the relief of its
-    normals too (relief.exr, relief.ply, scene.xml's mesh), unused by the fit: relight shades
-    by it only when asked (``relight --shadows``, ``--render``)."""
+    """A fit without the relief's shadows (``--shadows ratio``, or ``auto`` where it chose
+    ``ratio``) keeps the relief of its normals too (relief.exr, relief.ply, scene.xml's
+    mesh), unused by the fit: relight shades by it only when asked (``relight --shadows``,
+    ``--render``)."""
     from ..rti.relief import make_relief
 
     result.fit_settings.setdefault("shadows", options.shadows)
@@ -189,10 +190,27 @@ def _print_maps_summary(result, path, out: str) -> None:
     print(f"free per pixel: normal + {', '.join(result.free)} ({result.n_parameters} numbers)"
           + ("" if not result.fit_settings.get("free_choice") else
              ", chosen by cross-validation over held-out lights"))
+    print(_shadows_summary(result.fit_settings))
     for name, st in info["statistics"].items():
         if st.get("median") is not None:
             print(f"  {name}: median {st['median']:.4g} (5-95 %: {st['p5']:.4g}-{st['p95']:.4g})")
     print(f"wrote {out}: maps (EXR), fit.json, scene.xml")
+
+
+def _shadows_summary(settings: dict) -> str:
+    """fit-maps' line on the cast shadows: the mode used and, with ``auto``, both
+    cross-validated RMS."""
+    mode = settings.get("shadows", "ratio")
+    line = f"shadows: {mode} (" + ("the relief's cast shadows in the fit and relight's "
+                                    "default" if mode == "relief" else
+                                    "the ratio test; the relief kept unused") + ")"
+    choice = settings.get("shadows_choice")
+    if choice:
+        cv = choice["cv_rms"]
+        line += (f", chosen by cross-validation over held-out lights: RMS {cv['ratio']:.4g} "
+                 f"without the relief, {cv['relief']:.4g} with it (the relief needs "
+                 f"{100 * choice['margin']:g} % less)")
+    return line
 
 
 #: fit-maps options that need --tile-size, by attribute

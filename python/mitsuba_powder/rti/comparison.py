@@ -111,6 +111,7 @@ class Row:
         rmse_linear_8bit: 255 x held-out RMSE of the linear values.
         per_light_8bit: held-out RMSE per held-out light, 8-bit levels (encoded scale).
         seconds: fit and prediction time, s.
+        note: what the model says of its fit (the powder rows: the shadows it used), or "".
     """
 
     model: str
@@ -122,6 +123,7 @@ class Row:
     rmse_linear_8bit: float
     per_light_8bit: list[float]
     seconds: float
+    note: str = ""
 
 
 @dataclass
@@ -216,7 +218,7 @@ def _score(capture: Capture, name: str, fit: Fitter, protocol: str, idx: np.ndar
     npar = getattr(model, "n_parameters", None)
     return Row(name, protocol, idx.tolist(), int(len(keep)),
                None if npar is None else int(npar), rmse, rmse_lin, per_light,
-               seconds), emap
+               seconds, str(getattr(model, "note", "") or "")), emap
 
 
 def _markdown(comp: Comparison) -> str:
@@ -252,6 +254,9 @@ def _markdown(comp: Comparison) -> str:
             npar = "?" if r.n_parameters is None else str(r.n_parameters)
             lines.append(f"| {r.model} | {npar} | {r.rmse_8bit:.2f} | "
                          f"{r.rmse_linear_8bit:.2f} | {r.seconds:.2f} |")
+        notes = [f"- {r.model}: {r.note}" for r in comp.rows
+                 if r.protocol == protocol and r.note]
+        lines += [""] + notes if notes else []
     return "\n".join(lines) + "\n"
 
 

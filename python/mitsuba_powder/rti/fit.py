@@ -117,7 +117,10 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
             ``light_distance`` (image widths: ``inf``, a number or (K,) beyond the image's
             half-diagonal, or ``"fit"``: :mod:`mitsuba_powder.rti.distance`),
             ``max_iterations``, ``rounds``, ``saturation``, ``shadow_ratio``,
-            ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``, ``memory_gb``.
+            ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``, ``memory_gb``,
+            ``shadows`` (``auto``, default: the relief's cast shadows where
+            cross-validation over held-out lights keeps them; ``relief``; ``ratio``),
+            ``light_size``.
 
     Returns:
         A :class:`~mitsuba_powder.rti.result.MapsResult`.

@@ -12,7 +12,7 @@ A maps folder holds:
 - ``fit.json``: the settings held for every pixel, the free properties, the per-light gains, the
   capture's encoding / bit depth / file format (so that relit images match it), per-map
   statistics and the fit's diagnostics;
-- with a relief (:mod:`mitsuba_powder.rti.relief`; fit-maps keeps one with either ``shadows``):
+- with a relief (:mod:`mitsuba_powder.rti.relief`; fit-maps keeps one with any ``shadows``):
   ``relief.exr`` (the height field, pixel units), ``relief.ply`` (its mesh,
   :func:`write_relief_ply`); ``scene.xml`` then renders the mesh with the powder BSDF by the
   ``path`` integrator (cast shadows and interreflections; ``$max_depth``, default 4), and
@@ -464,8 +464,9 @@ def relight_files(maps_dir: str | Path, lights_lp: str | Path, out_dir: str | Pa
     is given, image widths), or, when a pixel size is known (``pixel_size``, default the fit's),
     directions if all are unit and light positions (each its own distance) if none is; the
     gains are the fit's gain model's. The images are the per-pixel model's, shaded by the
-    fit's relief (``shadows``: default when the fit was made with it,
-    ``shadows="relief"``), or, with ``render``
+    fit's relief (``shadows``: default when the fit was made with it, fit.json's
+    ``fit.shadows == "relief"``: ``shadows="relief"``, or ``"auto"`` where it chose the
+    relief), or, with ``render``
     (``spp``, ``variant``: :func:`mitsuba_powder.rti.rendered.render_maps`), the folder's
     ``scene.xml`` path traced under each light.
 

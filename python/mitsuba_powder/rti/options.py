@@ -42,11 +42,11 @@ DEFAULTS: dict[str, object] = {
     "gain_subsample": GAIN_PIXELS, "seed": 0, "light_distance": math.inf,
     "max_iterations": 30, "rounds": 3, "saturation": 0.99, "shadow_ratio": 0.5,
     "shadow_floor": 0.03, "solver": "drjit", "variant": VARIANT, "max_lanes": MAX_LANES,
-    "memory_gb": None, "exposure": None, "shadows": "ratio", "light_size": 0.5,
+    "memory_gb": None, "exposure": None, "shadows": "auto", "light_size": 0.5,
 }
 
 #: What :attr:`FitOptions.shadows` may be
-SHADOWS = ("relief", "ratio")
+SHADOWS = ("auto", "relief", "ratio")
 
 #: Options renamed (old name -> new name): the old names work for one release, with a
 #: DeprecationWarning
@@ -89,13 +89,16 @@ class FitOptions:
             the initial gains): a number > 0 (given, e.g. from a reference target), ``"fit"``
             (the plan's ``exposure scan``, :mod:`mitsuba_powder.rti.exposure`) or None (fitted
             when no initial gains are given, else 1: the initial gains are the irradiances).
-        shadows: ``ratio`` (default): the ratio test only, no relief; ``relief`` (opt-in):
-            after the per-pixel fit the relief is integrated from its normals
-            (:mod:`mitsuba_powder.rti.relief`) and every pixel is fitted again with each
-            light's visibility over that relief (observations below the horizon left out, the
-            soft edge in the model), then the ratio test. ``ratio`` is the default because on
-            RealRTI item 8 the relief's shadows made the held-out error at grazing light worse
-            (10.43 -> 12.52, docs/rti.md).
+        shadows: ``auto`` (default): after the per-pixel fit the relief is integrated from
+            its normals and kept where it relights held-out lights better: the held-out-light
+            RMS with and without the relief's visibility, cross-validated over folds of the
+            lights on a subsample of pixels, the relief kept when it is lower by more than
+            :data:`~mitsuba_powder.rti.selection.SHADOW_MARGIN`
+            (:func:`~mitsuba_powder.rti.selection.choose_shadows`), then as ``relief``,
+            else as ``ratio``. ``relief``: the relief always (every pixel fitted again with
+            each light's visibility over it: observations below the horizon left out, the
+            soft edge in the model; then the ratio test). ``ratio``: the ratio test only,
+            no relief in the fit.
         light_size: the lights' angular radius, degrees in [0, 45]: the soft edge of cast
             shadows (visibility 0.5 where the horizon cuts the light's centre).
         names: how messages name the options (e.g. ``{"memory_gb": "--memory-gb"}``).
@@ -116,7 +119,7 @@ class FitOptions:
     max_lanes: int
     memory_gb: float
     exposure: float | str | None = None
-    shadows: str = "ratio"
+    shadows: str = "auto"
     light_size: float = 0.5
     names: dict = field(default_factory=dict)
     given: dict = field(default_factory=dict)
@@ -183,7 +186,7 @@ def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
             ``shadow_ratio``, ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``,
             ``memory_gb`` (None: :func:`~mitsuba_powder.rti.blocks.default_memory_gb`),
             ``exposure`` (a number > 0, ``"fit"`` or None),
-            ``shadows`` (``ratio`` or ``relief``), ``light_size`` (degrees).
+            ``shadows`` (``auto``, ``relief`` or ``ratio``), ``light_size`` (degrees).
 
     Raises:
         ValueError: an unknown option or a value out of its range (named as ``names`` says).

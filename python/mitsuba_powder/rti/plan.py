@@ -21,11 +21,15 @@ for, in order; :func:`run_plan` runs them, each handing the next what it found
    pixels, under the gains found so far (:mod:`mitsuba_powder.rti.selection`);
 5. ``blocks``: every masked pixel, in blocks within the memory budget (one block while the
    gains are still fitted: they couple every pixel) (:mod:`mitsuba_powder.rti.blocks`);
-6. ``relief`` (``shadows="relief"``, opt-in; the default ``ratio`` has none): the height field
-   of the blocks' normals and its horizon map (:mod:`mitsuba_powder.rti.relief`), then every
-   masked pixel fitted
-   again with each light's visibility over it (the lights below a pixel's horizon left out,
-   the soft edge in the model), and the relief of these normals kept with the maps.
+6. ``shadows choice`` (``shadows="auto"``, the default): the height field of the blocks'
+   normals and its horizon map (:mod:`mitsuba_powder.rti.relief`), and whether its cast
+   shadows relight held-out lights better, cross-validated over folds of the lights on a
+   subsample of pixels (:func:`~mitsuba_powder.rti.selection.choose_shadows`);
+7. ``relief`` (``shadows="relief"``, or ``auto`` where the choice kept the relief): every
+   masked pixel fitted again with each light's visibility over that relief (the lights
+   below a pixel's horizon left out, the soft edge in the model), and the relief of these
+   normals kept with the maps; where ``auto`` chose ``ratio``, the blocks' maps are kept
+   with their relief, unused.
 
 Every stage fits its pixels the same way (:func:`~mitsuba_powder.rti.pixelfit.fit_in_blocks`:
 the Lambertian start, rounds of the per-pixel solver alternated with the gains, the maps). A
@@ -66,9 +70,9 @@ from .exposure import (
 from .inputs import FitInputs, check_inputs
 from .options import FitOptions
 from .pixelfit import Log, fit_in_blocks
-from .relief import make_relief
+from .relief import Relief, make_relief
 from .result import MapsResult
-from .selection import choose_free, free_candidates, held_out_rms
+from .selection import choose_free, choose_shadows, free_candidates, held_out_rms
 
 __all__ = ["FitPlan", "FitState", "Stage", "check_finite", "fit_distance", "make_plan",
            "run_fit", "run_plan"]
@@ -78,8 +82,9 @@ __all__ = ["FitPlan", "FitState", "Stage", "check_finite", "fit_distance", "make
 class FitState:
     """What the stages of a fit hand on: the light distance (found by the ``distance scan``
     and its record ``scan``), the options the next stage fits with (the gains held after the
-    ``gain subsample``) and the gains, the subsample's fit (``held``) and the maps
-    (``result``)."""
+    ``gain subsample``) and the gains, the subsample's fit (``held``), the maps
+    (``result``), and the relief of the blocks' normals with the ``shadows choice``'s
+    record."""
 
     light_distance: float | np.ndarray | str
     options: FitOptions
@@ -89,6 +94,8 @@ class FitState:
     free_choice: dict | None = None
     held: MapsResult | None = None
     result: MapsResult | None = None
+    relief: Relief | None = None
+    shadows_choice: dict | None = None
 
 
 #: A step of a plan: (the checked inputs, its stage, the state so far, the log) -> the state
@@ -137,7 +144,9 @@ def make_plan(images: np.ndarray, directions: np.ndarray, options: FitOptions,
     if options.fits_exposure:
         stages.append(Stage("exposure check", subsample_mask(inputs.mask), check_exposure))
     stages.append(Stage("blocks", inputs.mask, fit_blocks))
-    if options.shadows == "relief":
+    if options.shadows == "auto":
+        stages.append(Stage("shadows choice", subsample_mask(inputs.mask), choose_shadows_mode))
+    if options.shadows != "ratio":
         stages.append(Stage("relief", inputs.mask, fit_with_relief))
     return FitPlan(inputs, tuple(stages))
 
@@ -327,21 +336,55 @@ def fit_blocks(inputs: FitInputs, stage: Stage, state: FitState, log: Log) -> Fi
                                                state.gains, state.light_distance, log))
 
 
-def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
-                    ) -> FitState:
-    """Stage ``relief``: the relief of the maps so far, every pixel of the stage fitted again
-    under its visibility, and the relief of the new normals kept with them."""
+def choose_shadows_mode(inputs: FitInputs, stage: Stage, state: FitState, log: Log
+                        ) -> FitState:
+    """Stage ``shadows choice``: the relief of the blocks' normals, and whether its cast
+    shadows relight held-out lights of the stage's pixels better
+    (:func:`~mitsuba_powder.rti.selection.choose_shadows`; the fit without them as the
+    ``free choice`` cross-validated it, when it did)."""
     t0 = time.perf_counter()
-    first = state.result
+    relief = _relief_of(state.result, inputs, log)
+    seconds = time.perf_counter() - t0
+    free = state.free_choice
+    ratio_rms = None if free is None else next(
+        c["cv_rms"] for c in free["candidates"] if c["free"] == free["chosen"])
+    choice = choose_shadows(inputs, stage.pixels, state.options, state.gains,
+                            state.light_distance, relief, log, ratio_rms)
+    record = {**choice.to_dict(), "relief_seconds": seconds}
+    return replace(state, relief=relief, shadows_choice=record)
+
+
+def _relief_of(first: MapsResult, inputs: FitInputs, log: Log) -> Relief:
+    """The relief of the maps ``first`` (:func:`~mitsuba_powder.rti.relief.make_relief`)."""
+    t0 = time.perf_counter()
     relief = make_relief(first.normals, first.residual_rms, first.mask,
                          inputs.options.light_size)
-    seconds = time.perf_counter() - t0
+    log(f"relief: heights {np.ptp(relief.height[first.mask]):.4g} px from lowest to highest, "
+        f"height field and horizon map in {time.perf_counter() - t0:.1f} s")
+    return relief
+
+
+def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
+                    ) -> FitState:
+    """Stage ``relief``: the relief of the maps so far (the ``shadows choice``'s, if made),
+    every pixel of the stage fitted again under its visibility, and the relief of the new
+    normals kept with them; where the choice was ``ratio``, the maps so far with their
+    relief."""
+    first = state.result
+    if state.shadows_choice is not None and state.shadows_choice["chosen"] == "ratio":
+        first.relief = state.relief
+        first.fit_settings.update(relief_seconds=state.shadows_choice["relief_seconds"],
+                                  shadows="ratio", light_size=inputs.options.light_size)
+        log("shadows: the relief is kept with the maps, unused by the fit")
+        return state
+    t0 = time.perf_counter()
+    relief = state.relief if state.relief is not None else _relief_of(first, inputs, log)
+    seconds = time.perf_counter() - t0 + (state.shadows_choice or {}).get("relief_seconds", 0)
     shadowed = relief.visibility(inputs.d, first.mask) < 0.5 if np.all(
         np.isinf(state.light_distance)) else None
-    log(f"relief: heights {np.ptp(relief.height[first.mask]):.4g} px from lowest to highest, "
-        f"height field and horizon map in {seconds:.1f} s" + (
-            "" if shadowed is None else f", {int(shadowed.sum())} observations below the "
-            "horizon") + "; every pixel fitted again under its lights' visibility")
+    log("relief: " + ("" if shadowed is None else f"{int(shadowed.sum())} observations below "
+                      "the horizon; ") + "every pixel fitted again under its lights' "
+        "visibility")
     result = fit_in_blocks(replace(inputs, relief=relief), stage.pixels, state.options,
                            state.gains, state.light_distance, log)
     t1 = time.perf_counter()
@@ -387,7 +430,8 @@ def _finish(state: FitState, log: Log, t0: float) -> MapsResult:
         light_distance_source=("fitted" if state.scan is not None else "distant"
                                if np.all(np.isinf(r)) else "given"),
         light_distance_scan=state.scan, exposure=state.exposure,
-        free_choice=state.free_choice)
+        free_choice=state.free_choice, shadows_choice=state.shadows_choice)
+    result.fit_settings.setdefault("shadows", "ratio")
     result.exposure = float(state.exposure["value"])
     if held is not None:
         result.fit_settings.update(gains="fit", gain_pixels=held.fit_settings["gain_pixels"],

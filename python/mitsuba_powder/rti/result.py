@@ -42,9 +42,10 @@ class MapsResult:
         exposure: the lights' irradiance scale (given or fitted): the gain of a light when
             none is given and there is no gain model.
         relief: the relief integrated from the normals with its horizon map
-            (:mod:`mitsuba_powder.rti.relief`; fits with ``shadows="relief"``, and fit-maps'
-            ``ratio`` fits, unused by the fit): relit images of a ``relief`` fit are shaded
-            by it; None: no cast shadows.
+            (:mod:`mitsuba_powder.rti.relief`; fits with ``shadows="relief"`` or ``"auto"``
+            (the default), and fit-maps' ``ratio`` fits, unused by the fit): relit images of
+            a fit that used it (``fit_settings["shadows"] == "relief"``) are shaded by it;
+            None: no cast shadows.
     """
 
     normals: np.ndarray
@@ -113,7 +114,9 @@ def relight(result: MapsResult, directions: np.ndarray, gains: np.ndarray | None
             default: the fit's when it is one number (``inf`` for per-light distances).
         shadows: shade each pixel by the lights' visibility over the fit's relief (cast
             shadows, :mod:`mitsuba_powder.rti.relief`); default: when the fit was made with
-            them (``shadows="relief"``); a relief kept by a ``ratio`` fit is used when asked.
+            them (``fit_settings["shadows"] == "relief"``: ``shadows="relief"``, or
+            ``"auto"`` where it chose the relief); a relief kept by a fit without them is
+            used when asked.
 
     Returns:
         float32 (K', H, W, 3) radiance (the capture's linear units); 0 outside the mask.

@@ -11,11 +11,20 @@ RMS of the held-out residuals over the folds (observations not saturated); the s
 candidate whose score is within :data:`TOLERANCE` of the best is chosen (a property earns its
 place by relighting better, not by fitting the lights it saw). ``free`` given (``--free``)
 skips the choice.
+
+The cast shadows of the fit's relief (``shadows="auto"``, the default) are chosen the same
+way (:func:`choose_shadows`): on the same subsample and folds, the held-out RMS of the fit
+without the relief (the ratio test only, the lights relit unshaded) against the fit under the
+relief's visibility (the lights below a pixel's horizon left out, the held-out lights relit
+shaded by their visibility); the relief is kept when its RMS is lower by more than
+:data:`SHADOW_MARGIN` (the simpler model, no shadows, wins a tie). The relief is integrated
+once, from the normals of the fit of every light (a fold's held-out lights have seen the
+heights they are relit over; the folds refit every pixel of the subsample without them).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,15 +33,19 @@ from .inputs import FitData, FitInputs
 from .options import FitOptions
 from .pixelfit import Log, fit_pixels
 from .properties import MAP_DEFAULT_FREE
+from .relief import Relief
 
-__all__ = ["FOLDS", "TOLERANCE", "FreeChoice", "choose_free", "free_candidates",
-           "held_out_rms"]
+__all__ = ["FOLDS", "SHADOW_MARGIN", "TOLERANCE", "FreeChoice", "ShadowChoice",
+           "choose_free", "choose_shadows", "free_candidates", "held_out_rms"]
 
 #: Folds of the lights (light k is held out in fold ``k % FOLDS``)
 FOLDS = 5
 #: A simpler candidate is chosen when its cross-validated RMS is within this fraction of the
 #: best one's
 TOLERANCE = 0.01
+#: The relief's cast shadows are kept when their cross-validated RMS is lower than the fit's
+#: without them by more than this fraction
+SHADOW_MARGIN = 0.03
 #: The surface lobe's properties, the candidates' optional part
 LOBE = ("amplitude_surface", "correlation_length")
 
@@ -82,14 +95,21 @@ def choose_free(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains: 
 
 
 def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains: np.ndarray,
-                 light_distance, folds: int = FOLDS) -> tuple[float, int]:
+                 light_distance, folds: int = FOLDS, relief: Relief | None = None
+                 ) -> tuple[float, int]:
     """The RMS (linear units) of the held-out residuals of the pixels ``sub`` fitted with
     ``options`` under ``gains`` with each fold of the lights held out in turn (light k in fold
     ``k % folds``), and the held-out observations it counts (channels of observations not
-    saturated, of pixels whose prediction is finite)."""
+    saturated, of pixels whose prediction is finite). With a ``relief``, the pixels are fitted
+    under its visibility (:meth:`FitInputs.pixels`) and the held-out lights relit shaded by
+    it, as :meth:`~mitsuba_powder.rti.result.MapsResult.predict` does."""
     k = len(inputs.d)
     medians = {n: float(np.median(m[sub])) for n, m in inputs.maps.items()}
     data = inputs.pixels(sub, gains, light_distance, options)
+    fitted, vis = data, None
+    if relief is not None:
+        fitted = replace(inputs, relief=relief).pixels(sub, gains, light_distance, options)
+        vis = relief.visibility(data.d if data.field is None else data.field[0], sub)
     ev = PixelEvaluator(options.others + list(data.fixed_maps), options.settings,
                         options.variant)
     ssr, n = 0.0, 0
@@ -97,8 +117,10 @@ def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains:
         held = np.arange(k) % folds == f
         if not held.any() or held.all():
             continue
-        part = fit_pixels(ev, _lights(data, ~held), Log(), medians)
+        part = fit_pixels(ev, _lights(fitted, ~held), Log(), medians)
         pred = _predict(ev, part, data, held)
+        if vis is not None:
+            pred = pred * vis[:, held, None]
         wt = ~np.any(data.obs[:, held] >= options.saturation, axis=2)     # (P, K_held)
         r = (pred - data.obs[:, held]) * wt[:, :, None]
         good = np.isfinite(r).all(axis=(1, 2))
@@ -107,13 +129,52 @@ def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains:
     return float(np.sqrt(ssr / max(n, 1))), n
 
 
+@dataclass
+class ShadowChoice:
+    """The choice of the relief's cast shadows: the cross-validated RMS (linear units)
+    without (``ratio``) and with (``relief``) them, the mode chosen, the folds and pixels."""
+
+    ratio: float
+    relief: float
+    chosen: str
+    folds: int
+    pixels: int
+
+    def to_dict(self) -> dict:
+        return {"option": "auto", "cv_rms": {"ratio": self.ratio, "relief": self.relief},
+                "chosen": self.chosen, "margin": SHADOW_MARGIN, "folds": self.folds,
+                "pixels": self.pixels}
+
+
+def choose_shadows(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
+                   gains: np.ndarray, light_distance, relief: Relief, log: Log,
+                   ratio_rms: float | None = None, folds: int = FOLDS) -> ShadowChoice:
+    """``relief`` when the fit under ``relief``'s visibility relights the held-out lights of
+    the pixels ``sub`` better than the fit without it by more than :data:`SHADOW_MARGIN`,
+    else ``ratio`` (module docstring); ``ratio_rms``: the fit's without the relief, when
+    already cross-validated on ``sub`` (the free choice's)."""
+    folds = max(2, min(int(folds), len(inputs.d)))
+    ratio_opts = options.replace(shadows="ratio")
+    if ratio_rms is None:
+        ratio_rms = held_out_rms(inputs, sub, ratio_opts, gains, light_distance, folds)[0]
+    relief_rms = held_out_rms(inputs, sub, ratio_opts, gains, light_distance, folds,
+                              relief)[0]
+    chosen = "relief" if relief_rms < ratio_rms * (1.0 - SHADOW_MARGIN) else "ratio"
+    log(f"shadows: cross-validated over {folds} folds of the lights on {int(sub.sum())} "
+        f"pixels: without the relief {ratio_rms:.4g}, with its cast shadows {relief_rms:.4g} "
+        f"(held-out RMS); chosen {chosen} (the relief needs "
+        f"{100 * SHADOW_MARGIN:g} % less)")
+    return ShadowChoice(float(ratio_rms), float(relief_rms), chosen, folds, int(sub.sum()))
+
+
 def _lights(data: FitData, keep: np.ndarray) -> FitData:
     """``data`` with the lights ``keep`` (bool (K,)) only."""
     field = None if data.field is None else (data.field[0][:, keep], data.field[1][:, keep])
     return FitData(obs=np.ascontiguousarray(data.obs[:, keep]), d=data.d[keep],
                    mask=data.mask, gains=data.gains[keep], fixed_maps=data.fixed_maps,
                    fixed_albedo=data.fixed_albedo, grain=data.grain, options=data.options,
-                   field=field, light_distance=data.light_distance)
+                   field=field, light_distance=data.light_distance,
+                   shadowed=None if data.shadowed is None else data.shadowed[:, keep])
 
 
 def _predict(ev: PixelEvaluator, part, data: FitData, held: np.ndarray) -> np.ndarray:

@@ -417,7 +417,7 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
 
 def _options_of(options: FitOptions | None, fit: dict) -> FitOptions:
     """The tiled fit's options: ``options`` as given, or built from the keywords ``fit``
-    (not both), with the ratio test for shadows (no relief)."""
+    (not both), with the ratio test for shadows (no relief; ``auto`` is ``ratio`` here)."""
     if options is None:
         options = fit_options(**fit)
     elif fit:
