@@ -93,7 +93,7 @@ def test_fit_maps_default_chooses_the_shadows(capture_dir, tmp_path, capsys):
     assert choice["option"] == "auto" and choice["chosen"] == info["fit"]["shadows"]
     cv = choice["cv_rms"]
     assert 0 < cv["ratio"] < 0.05 and 0 < cv["relief"] < 0.05
-    expected = "relief" if cv["relief"] < (1 - choice["margin"]) * cv["ratio"] else "ratio"
+    expected = "relief" if choice["z"] > choice["margin_z"] else "ratio"
     assert choice["chosen"] == expected
     assert f"shadows: {expected} (" in printed and "chosen by cross-validation" in printed
     assert info["relief"]["height"] == "relief.exr"

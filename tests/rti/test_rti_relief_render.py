@@ -12,7 +12,7 @@ from relief_capture import noise_floor, relief_capture
 from mitsuba_powder.rti import MapsResult, fit_maps, synthetic_maps
 from mitsuba_powder.rti.relief import make_relief
 from mitsuba_powder.rti.rendered import render_result
-from mitsuba_powder.rti.selection import SHADOW_MARGIN
+from mitsuba_powder.rti.selection import SHADOW_Z
 
 
 def test_held_out_grazing_lights_are_relit_with_the_defaults(tmp_path):
@@ -34,7 +34,7 @@ def test_held_out_grazing_lights_are_relit_with_the_defaults(tmp_path):
     choice = result.fit_settings["shadows_choice"]
     assert result.fit_settings["shadows"] == "relief" and choice["chosen"] == "relief"
     cv = choice["cv_rms"]
-    assert cv["relief"] < (1 - SHADOW_MARGIN) * cv["ratio"], cv
+    assert cv["relief"] < cv["ratio"] and choice["z"] > SHADOW_Z, choice
     shaded = float(np.sqrt(np.mean((result.predict(d[held]) - truth) ** 2)))
     assert shaded < 1.5 * floor, shaded / floor
     plain = fit_maps(cap["images"][keep], d[keep], shadows="ratio")

@@ -208,8 +208,9 @@ def _shadows_summary(settings: dict) -> str:
     if choice:
         cv = choice["cv_rms"]
         line += (f", chosen by cross-validation over held-out lights: RMS {cv['ratio']:.4g} "
-                 f"without the relief, {cv['relief']:.4g} with it (the relief needs "
-                 f"{100 * choice['margin']:g} % less)")
+                 f"without the relief, {cv['relief']:.4g} with it, better with it by "
+                 f"{choice['z']:.3g} standard errors (the relief needs more than "
+                 f"{choice['margin_z']:g})")
     return line
 
 

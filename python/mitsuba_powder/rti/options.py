@@ -92,8 +92,9 @@ class FitOptions:
         shadows: ``auto`` (default): after the per-pixel fit the relief is integrated from
             its normals and kept where it relights held-out lights better: the held-out-light
             RMS with and without the relief's visibility, cross-validated over folds of the
-            lights on a subsample of pixels, the relief kept when it is lower by more than
-            :data:`~mitsuba_powder.rti.selection.SHADOW_MARGIN`
+            lights on a subsample of pixels, the relief kept when it lowers the pixels'
+            held-out squared residuals by more than
+            :data:`~mitsuba_powder.rti.selection.SHADOW_Z` standard errors
             (:func:`~mitsuba_powder.rti.selection.choose_shadows`), then as ``relief``,
             else as ``ratio``. ``relief``: the relief always (every pixel fitted again with
             each light's visibility over it: observations below the horizon left out, the

@@ -340,16 +340,12 @@ def choose_shadows_mode(inputs: FitInputs, stage: Stage, state: FitState, log: L
                         ) -> FitState:
     """Stage ``shadows choice``: the relief of the blocks' normals, and whether its cast
     shadows relight held-out lights of the stage's pixels better
-    (:func:`~mitsuba_powder.rti.selection.choose_shadows`; the fit without them as the
-    ``free choice`` cross-validated it, when it did)."""
+    (:func:`~mitsuba_powder.rti.selection.choose_shadows`)."""
     t0 = time.perf_counter()
     relief = _relief_of(state.result, inputs, log)
     seconds = time.perf_counter() - t0
-    free = state.free_choice
-    ratio_rms = None if free is None else next(
-        c["cv_rms"] for c in free["candidates"] if c["free"] == free["chosen"])
     choice = choose_shadows(inputs, stage.pixels, state.options, state.gains,
-                            state.light_distance, relief, log, ratio_rms)
+                            state.light_distance, relief, log)
     record = {**choice.to_dict(), "relief_seconds": seconds}
     return replace(state, relief=relief, shadows_choice=record)
 

@@ -49,7 +49,7 @@ def shadows_note(fit_settings: dict) -> str:
     if choice:
         cv = choice["cv_rms"]
         note += (f" (auto: cross-validated RMS {cv['ratio']:.4g} without the relief, "
-                 f"{cv['relief']:.4g} with it)")
+                 f"{cv['relief']:.4g} with it, z = {choice['z']:.3g})")
     return note
 
 

@@ -13,13 +13,16 @@ place by relighting better, not by fitting the lights it saw). ``free`` given (`
 skips the choice.
 
 The cast shadows of the fit's relief (``shadows="auto"``, the default) are chosen the same
-way (:func:`choose_shadows`): on the same subsample and folds, the held-out RMS of the fit
-without the relief (the ratio test only, the lights relit unshaded) against the fit under the
-relief's visibility (the lights below a pixel's horizon left out, the held-out lights relit
-shaded by their visibility); the relief is kept when its RMS is lower by more than
-:data:`SHADOW_MARGIN` (the simpler model, no shadows, wins a tie). The relief is integrated
-once, from the normals of the fit of every light (a fold's held-out lights have seen the
-heights they are relit over; the folds refit every pixel of the subsample without them).
+way (:func:`choose_shadows`): on the same subsample and folds, the held-out squared residuals
+of each pixel, fitted without the relief (the ratio test only, the lights relit unshaded) and
+under the relief's visibility (the lights below a pixel's horizon left out, the held-out
+lights relit shaded by their visibility). Shadows matter at few (pixel, light) pairs, so a
+margin on the RMS over every light would hide them; instead the relief is kept when the
+pixels' paired differences (without minus with) have a mean above :data:`SHADOW_Z` standard
+errors (nearby pixels are not independent: the error is a scale, not a probability). A tie
+(nothing shades) keeps the simpler fit, no shadows. The relief is integrated once, from the
+normals of the fit of every light (a fold's held-out lights have seen the heights they are
+relit over; the folds refit every pixel of the subsample without them).
 """
 
 from __future__ import annotations
@@ -35,17 +38,18 @@ from .pixelfit import Log, fit_pixels
 from .properties import MAP_DEFAULT_FREE
 from .relief import Relief
 
-__all__ = ["FOLDS", "SHADOW_MARGIN", "TOLERANCE", "FreeChoice", "ShadowChoice",
-           "choose_free", "choose_shadows", "free_candidates", "held_out_rms"]
+__all__ = ["FOLDS", "SHADOW_Z", "TOLERANCE", "FreeChoice", "ShadowChoice", "choose_free",
+           "choose_shadows", "free_candidates", "held_out_rms", "held_out_squares",
+           "paired_z"]
 
 #: Folds of the lights (light k is held out in fold ``k % FOLDS``)
 FOLDS = 5
 #: A simpler candidate is chosen when its cross-validated RMS is within this fraction of the
 #: best one's
 TOLERANCE = 0.01
-#: The relief's cast shadows are kept when their cross-validated RMS is lower than the fit's
-#: without them by more than this fraction
-SHADOW_MARGIN = 0.03
+#: The relief's cast shadows are kept when they lower the held-out squared residuals by more
+#: than this many standard errors (their per-pixel difference, paired, over the subsample)
+SHADOW_Z = 2.0
 #: The surface lobe's properties, the candidates' optional part
 LOBE = ("amplitude_surface", "correlation_length")
 
@@ -100,9 +104,20 @@ def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains:
     """The RMS (linear units) of the held-out residuals of the pixels ``sub`` fitted with
     ``options`` under ``gains`` with each fold of the lights held out in turn (light k in fold
     ``k % folds``), and the held-out observations it counts (channels of observations not
-    saturated, of pixels whose prediction is finite). With a ``relief``, the pixels are fitted
-    under its visibility (:meth:`FitInputs.pixels`) and the held-out lights relit shaded by
-    it, as :meth:`~mitsuba_powder.rti.result.MapsResult.predict` does."""
+    saturated, of pixels whose prediction is finite): :func:`held_out_squares` summed."""
+    ssr, n, _ = held_out_squares(inputs, sub, options, gains, light_distance, folds, relief)
+    return float(np.sqrt(np.sum(ssr) / max(int(np.sum(n)), 1))), int(np.sum(n))
+
+
+def held_out_squares(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
+                     gains: np.ndarray, light_distance, folds: int = FOLDS,
+                     relief: Relief | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel of ``sub`` (C order): the sum of squared held-out residuals (:func:`held_out_rms`'s
+    folds; a fold whose prediction at the pixel is not finite left out), their count, and
+    whether every fold's prediction was finite. With a ``relief``, the pixels are fitted under
+    its visibility (:meth:`FitInputs.pixels`) and the held-out lights relit shaded by it, as
+    :meth:`~mitsuba_powder.rti.result.MapsResult.predict` does."""
     k = len(inputs.d)
     medians = {n: float(np.median(m[sub])) for n, m in inputs.maps.items()}
     data = inputs.pixels(sub, gains, light_distance, options)
@@ -112,7 +127,8 @@ def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains:
         vis = relief.visibility(data.d if data.field is None else data.field[0], sub)
     ev = PixelEvaluator(options.others + list(data.fixed_maps), options.settings,
                         options.variant)
-    ssr, n = 0.0, 0
+    p = len(data.obs)
+    ssr, n, finite = np.zeros(p), np.zeros(p, dtype=np.int64), np.ones(p, dtype=bool)
     for f in range(folds):
         held = np.arange(k) % folds == f
         if not held.any() or held.all():
@@ -124,47 +140,62 @@ def held_out_rms(inputs: FitInputs, sub: np.ndarray, options: FitOptions, gains:
         wt = ~np.any(data.obs[:, held] >= options.saturation, axis=2)     # (P, K_held)
         r = (pred - data.obs[:, held]) * wt[:, :, None]
         good = np.isfinite(r).all(axis=(1, 2))
-        ssr += float(np.sum(r[good] ** 2))
-        n += int(3 * np.sum(wt[good]))
-    return float(np.sqrt(ssr / max(n, 1))), n
+        finite &= good
+        ssr[good] += np.sum(r[good] ** 2, axis=(1, 2))
+        n[good] += 3 * np.sum(wt[good], axis=1)
+    return ssr, n, finite
 
 
 @dataclass
 class ShadowChoice:
     """The choice of the relief's cast shadows: the cross-validated RMS (linear units)
-    without (``ratio``) and with (``relief``) them, the mode chosen, the folds and pixels."""
+    without (``ratio``) and with (``relief``) them, the paired difference's ``z`` (in standard
+    errors), the mode chosen, the folds and pixels."""
 
     ratio: float
     relief: float
+    z: float
     chosen: str
     folds: int
     pixels: int
 
     def to_dict(self) -> dict:
         return {"option": "auto", "cv_rms": {"ratio": self.ratio, "relief": self.relief},
-                "chosen": self.chosen, "margin": SHADOW_MARGIN, "folds": self.folds,
-                "pixels": self.pixels}
+                "z": self.z, "chosen": self.chosen, "margin_z": SHADOW_Z,
+                "folds": self.folds, "pixels": self.pixels}
 
 
 def choose_shadows(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
                    gains: np.ndarray, light_distance, relief: Relief, log: Log,
-                   ratio_rms: float | None = None, folds: int = FOLDS) -> ShadowChoice:
+                   folds: int = FOLDS) -> ShadowChoice:
     """``relief`` when the fit under ``relief``'s visibility relights the held-out lights of
-    the pixels ``sub`` better than the fit without it by more than :data:`SHADOW_MARGIN`,
-    else ``ratio`` (module docstring); ``ratio_rms``: the fit's without the relief, when
-    already cross-validated on ``sub`` (the free choice's)."""
+    the pixels ``sub`` better than the fit without it by more than :data:`SHADOW_Z` standard
+    errors of the paired per-pixel difference, else ``ratio`` (module docstring)."""
     folds = max(2, min(int(folds), len(inputs.d)))
-    ratio_opts = options.replace(shadows="ratio")
-    if ratio_rms is None:
-        ratio_rms = held_out_rms(inputs, sub, ratio_opts, gains, light_distance, folds)[0]
-    relief_rms = held_out_rms(inputs, sub, ratio_opts, gains, light_distance, folds,
-                              relief)[0]
-    chosen = "relief" if relief_rms < ratio_rms * (1.0 - SHADOW_MARGIN) else "ratio"
-    log(f"shadows: cross-validated over {folds} folds of the lights on {int(sub.sum())} "
+    args = (inputs, sub, options.replace(shadows="ratio"), gains, light_distance, folds)
+    a, na, fa = held_out_squares(*args)
+    b, nb, fb = held_out_squares(*args, relief)
+    ok = fa & fb & (na > 0)
+    z = paired_z(a[ok] - b[ok])
+    ratio_rms = float(np.sqrt(a[ok].sum() / max(int(na[ok].sum()), 1)))
+    relief_rms = float(np.sqrt(b[ok].sum() / max(int(nb[ok].sum()), 1)))
+    chosen = "relief" if z > SHADOW_Z else "ratio"
+    log(f"shadows: cross-validated over {folds} folds of the lights on {int(ok.sum())} "
         f"pixels: without the relief {ratio_rms:.4g}, with its cast shadows {relief_rms:.4g} "
-        f"(held-out RMS); chosen {chosen} (the relief needs "
-        f"{100 * SHADOW_MARGIN:g} % less)")
-    return ShadowChoice(float(ratio_rms), float(relief_rms), chosen, folds, int(sub.sum()))
+        f"(held-out RMS), the relief better by {z:.3g} standard errors (paired per pixel); "
+        f"chosen {chosen} (the relief needs more than {SHADOW_Z:g})")
+    return ShadowChoice(ratio_rms, relief_rms, z, chosen, folds, int(ok.sum()))
+
+
+def paired_z(diff: np.ndarray) -> float:
+    """The mean of ``diff`` in standard errors of the mean (0 for no difference at all,
+    +-inf for the same non-zero difference everywhere)."""
+    diff = np.asarray(diff, dtype=np.float64)
+    if diff.size == 0 or not np.any(diff):
+        return 0.0
+    se = float(np.std(diff, ddof=1)) / np.sqrt(diff.size) if diff.size > 1 else 0.0
+    mean = float(np.mean(diff))
+    return mean / se if se > 0 else float(np.sign(mean) * np.inf)
 
 
 def _lights(data: FitData, keep: np.ndarray) -> FitData:
