@@ -18,10 +18,11 @@ from mitsuba_powder.rti.selection import SHADOW_Z
 def test_held_out_grazing_lights_are_relit_with_the_defaults(tmp_path):
     """32 x 32 px, 40 lights at 5-80 degrees of which 6 at 5-15 held out, noise 0.005, the
     lights' irradiance not given (1, the fit's calibration), 64 spp (their Monte Carlo noise
-    in the floor). The default shadows="auto" keeps the relief (its cross-validated RMS
-    lower by more than the margin) and relight's default shades by it. Measured: 1.13x the
-    floor with the defaults, 2.07x with shadows="ratio" (the fit's ratio test and no shadow
-    in the relight)."""
+    in the floor). The default shadows="auto" keeps the relief (it relights the held-out
+    folds better by more than the margin) and relight's default shades by it. Measured:
+    1.15x the floor with the defaults, 2.18x with shadows="ratio" (the fit's ratio test and
+    no shadow in the relight); auto's cross-validated RMS 0.00866 without the relief,
+    0.00744 with it, z = 17."""
     cap = relief_capture(32, 32, tmp_path, spp=64, noise=0.005)
     d, held = cap["directions"], cap["held"]
     assert np.all(np.degrees(np.arcsin(d[held, 2])) <= 15.0) and len(held) == 6
