@@ -4,10 +4,10 @@ of a round that fits every pixel again, bit for bit."""
 
 import numpy as np
 import pytest
+from test_rti_exposure import uncalibrated
 
 import mitsuba_powder.rti.pixelfit as pixelfit
 from mitsuba_powder import rti as rf
-from test_rti_exposure import uncalibrated
 
 
 @pytest.fixture(scope="module")
