@@ -216,5 +216,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("bench_rti_fit.py", "rti_fit", ("fit s", "peak MiB")),
     Benchmark("bench_rti_tiles.py", "rti_tiles", ("fit s", "peak MiB/worker", "identical")),
     Benchmark("bench_relief.py", "relief", ("step", "time s")),
+    Benchmark("bench_unmix_global.py", "unmix_global", ("success (2 %)", "chi2 <= truth",
+                                                        "evaluations")),
     Benchmark("ptfe_reference_fit.py", "ptfe_reference", ("RMSE BRF", "within 1 %")),
 )

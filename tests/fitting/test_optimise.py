@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 
 from mitsuba_powder.fitting.optimise import (
+    GLOBAL_STAGES,
     ParamSpec,
     batch_levenberg_marquardt,
+    check_global_stage,
     distinct_best,
     finite_difference_jacobian,
     multistart,
+    nlopt_search,
     polish,
     sobol_starts,
 )
@@ -137,3 +140,55 @@ def test_distinct_best_skips_near_duplicates():
     y = np.array([[0.0, 0.0], [0.001, 0.0], [0.5, 0.5], [1.0, 1.0]])
     cost = np.array([1.0, 0.9, 2.0, np.nan])
     assert distinct_best(y, cost, 3, np.array([1.0, 1.0])) == [1, 2]
+
+
+# ------------------------------------------------------------ the nlopt global stages
+
+
+@pytest.mark.parametrize("method", ["mlsl", "crs2"])
+def test_nlopt_stage_finds_the_global_minimum(method):
+    """MLSL and CRS2 (then the LM steps and the polish) reach the two-term optimum from the
+    one-term valley, where a single LM start stays."""
+    problem = TwoExponentials(noise=0.002)
+    best = multistart(problem, sobol_starts(problem.lower, problem.upper, 32, seed=2))
+    result = nlopt_search(problem, method, 600, seed=1, start=np.array([1.2, 0.05, 0.0, -2.0]))
+    assert result.cost == pytest.approx(best.cost, rel=1e-6)
+    assert result.evaluations > 600 and "nlopt" in result.stages[0]
+    assert np.all(result.y >= problem.lower) and np.all(result.y <= problem.upper)
+
+
+@pytest.mark.parametrize("method", ["mlsl", "crs2"])
+def test_nlopt_stage_is_reproducible_with_a_seed(method):
+    """The same seed, the same points (nlopt.srand before each run); CRS2's random population
+    differs with another seed."""
+    def run(seed):
+        problem = TwoExponentials(noise=0.002)
+        r = nlopt_search(problem, method, 300, seed=seed)
+        return r, problem.calls
+
+    (a, calls_a), (b, calls_b) = run(7), run(7)
+    np.testing.assert_array_equal(a.y, b.y)
+    np.testing.assert_array_equal(a.start_costs, b.start_costs)
+    assert calls_a == calls_b and a.stages == b.stages
+    if method == "crs2":
+        c, _ = run(8)
+        assert c.stages[0] != a.stages[0] or not np.array_equal(c.start_costs, a.start_costs)
+
+
+def test_unknown_global_stage_names_the_option_and_the_valid_values():
+    with pytest.raises(ValueError, match=r"global_stage = 'lbfgs' is not a global stage; "
+                                         r"valid values are sobol, mlsl, crs2"):
+        check_global_stage("lbfgs")
+    with pytest.raises(ValueError, match=r"--global = 'x' is not a global stage"):
+        check_global_stage("x", "--global")
+    assert GLOBAL_STAGES == ("sobol", "mlsl", "crs2")
+    with pytest.raises(ValueError, match="global_stage = 'de'"):
+        nlopt_search(TwoExponentials(), "de", 10, seed=0)
+
+
+def test_without_nlopt_the_stage_says_how_to_install_it(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "nlopt", None)
+    with pytest.raises(ImportError, match=r"pip install 'mitsuba-powder\[nlopt\]'.*sobol"):
+        nlopt_search(TwoExponentials(), "crs2", 10, seed=0)

@@ -44,7 +44,11 @@ def test_round_trip_recovers_the_fractions(free_radii):
     assert np.all(np.abs(r.fractions - want) < 0.02), r.fractions
     assert np.all(np.abs(r.fractions - want) <= 2 * r.fraction_errors), (r.fractions,
                                                                          r.fraction_errors)
-    assert not r.warnings and r.dof == 26 - (2 + (3 if free_radii else 0))
+    # with the radii free, few of the 64 Sobol starts reach the best chi2 (the search is
+    # multimodal) and the result says so
+    assert all(w.startswith("only 1 of 64 searches") for w in r.warnings) if free_radii \
+        else not r.warnings, r.warnings
+    assert r.dof == 26 - (2 + (3 if free_radii else 0))
     assert 0.5 < r.chi2 / r.dof < 2.0
     if free_radii:
         np.testing.assert_allclose(r.radii, [1.0, 0.1, 0.3], rtol=0.05)
@@ -57,9 +61,33 @@ def test_the_uncertainties_are_calibrated():
     inside = []
     for seed in range(40):
         albedo, sigma = noisy(100 + seed)
-        r = unmix(WAVELENGTHS, albedo, sigma, START)
+        r = unmix(WAVELENGTHS, albedo, sigma, START, starts=1)  # the START's basin
         inside += list(np.abs(r.fractions - want) <= r.fraction_errors)
     assert 0.5 < np.mean(inside) < 0.85, np.mean(inside)
+
+
+@pytest.mark.parametrize("stage", ["mlsl", "crs2"])
+def test_the_nlopt_stages_are_reproducible_with_a_seed(stage):
+    """The nlopt global stages (then Levenberg-Marquardt and the polish) from the --mix start,
+    radii free: the same seed, the same result, a valid mixture. (With 800 evaluations both
+    end in other basins of this spectrum than the default Sobol stage: docs/fitting.md.)"""
+    albedo, sigma = noisy(0)
+    runs = [unmix(WAVELENGTHS, albedo, sigma, START, free_radii=True, global_stage=stage,
+                  max_evaluations=800, seed=3) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].fractions, runs[1].fractions)
+    np.testing.assert_array_equal(runs[0].radii, runs[1].radii)
+    assert runs[0].evaluations == runs[1].evaluations > 800
+    assert runs[0].global_stage == stage and np.isfinite(runs[0].chi2)
+    assert runs[0].fractions.sum() == pytest.approx(1.0) and np.all(runs[0].fractions > 0)
+
+
+def test_unknown_global_stage_is_an_error():
+    albedo, sigma = noisy(2)
+    with pytest.raises(ValueError, match=r"global_stage = 'simplex' is not a global stage; "
+                                         r"valid values are sobol, mlsl, crs2"):
+        unmix(WAVELENGTHS, albedo, sigma, START, global_stage="simplex")
+    with pytest.raises(ValueError, match=r"starts = 0 is out of range"):
+        unmix(WAVELENGTHS, albedo, sigma, START, starts=0)
 
 
 def test_mass_fractions_use_the_densities():
@@ -111,6 +139,11 @@ def test_cli_unmix(tmp_path, capsys):
     assert np.all(np.abs(np.array(doc["volume_fractions"]) - [0.8, 0.12, 0.08]) < 0.02)
     assert main(["unmix", str(csv), "--mix", "hematite:100%:0.1um"]) == 2
     assert "valid range is [2, 4]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["unmix", str(csv), "--mix", "kaolinite:50%:1um,hematite:50%:0.1um",
+              "--global", "simplex"])
+    err = capsys.readouterr().err
+    assert "--global" in err and "'sobol', 'mlsl', 'crs2'" in err, err
 
 
 # ------------------------------------------------------------ in the goniometric fit
@@ -138,6 +171,26 @@ def test_fit_frees_the_fractions_of_a_three_material_powder(free_tau):
         assert err < 0.02 and err <= 3 * r.uncertainties[name], (name, r.parameters[name],
                                                                  r.uncertainties[name])
     assert not r.warnings, r.warnings
+
+
+def test_fit_takes_the_nlopt_stage_and_refuses_an_unknown_one():
+    """fit(global_stage=...) through the same optimiser: CRS2 over the free variables, then
+    Levenberg-Marquardt and the polish, recovers the fractions; an unknown stage is an error
+    naming the option and the valid values."""
+    from mitsuba_powder.fitting.fit import fit
+    from mitsuba_powder.fitting.protocols import simulate
+
+    data = simulate(GONIO_TRUTH, "backscatter", wavelengths=tuple(WAVELENGTHS[::5]),
+                    noise=0.01, seed=5)
+    free = ["fraction2", "fraction3", "extinction"]
+    fixed = {k: v for k, v in GONIO_TRUTH.items() if k not in free}
+    r = fit(data, free=free, fixed=fixed, starts=4, global_stage="crs2")
+    assert "nlopt crs2" in r.stages[0]
+    for name in ("fraction2", "fraction3"):
+        assert abs(r.parameters[name] - GONIO_TRUTH[name]) < 0.02, r.parameters
+    with pytest.raises(ValueError, match=r"global_stage = 'de' is not a global stage; valid "
+                                         r"values are sobol, mlsl, crs2"):
+        fit(data, free=free, fixed=fixed, global_stage="de")
 
 
 def test_fit_of_free_fractions_of_different_materials_needs_tau_o():

@@ -158,9 +158,11 @@ def _cmd_unmix(args: argparse.Namespace) -> int:
     wl, albedo, sigma = _read_albedo_csv(args.albedo)
     parts = parse_mix(args.mix)
     out = output_file(args.json, "--json") if args.json else None
-    r = unmix(wl, albedo, sigma, parts, free_radii=args.free_radii, by=args.by)
+    r = unmix(wl, albedo, sigma, parts, free_radii=args.free_radii, by=args.by,
+              global_stage=args.global_stage, starts=args.starts, seed=args.seed)
     print(f"unmixing {args.albedo}: {len(wl)} wavelengths, chi2 {r.chi2:.4g} for {r.dof} "
-          "degrees of freedom")
+          f"degrees of freedom ({r.global_stage} search: {r.evaluations} model evaluations, "
+          f"{r.seconds:.2g} s)")
     print(f"{'material':>12s} {'volume':>8s} {'+/-':>7s} {'mass':>8s} {'radius um':>10s} "
           f"{'+/-':>7s}")
     for j, m in enumerate(r.materials):
@@ -175,6 +177,7 @@ def _cmd_unmix(args: argparse.Namespace) -> int:
                "mass_fractions": None if r.mass_fractions is None else
                r.mass_fractions.tolist(), "radii_um": r.radii.tolist(),
                "radius_errors_um": r.radius_errors.tolist(), "chi2": r.chi2, "dof": r.dof,
+               "global_stage": r.global_stage, "evaluations": r.evaluations,
                "warnings": r.warnings}
         check_finite_json(doc, str(out))
         out.write_text(json.dumps(doc, indent=1) + "\n")

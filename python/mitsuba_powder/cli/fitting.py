@@ -59,7 +59,7 @@ def _fit(args: argparse.Namespace, data, held_out, process) -> int:
     print(f"fitting {len(data)} measurements at {data.wavelengths().tolist()} nm; "
           f"free: {', '.join(free)}; fixed: {fixed or 'plugin defaults'}")
     result = fit(data, free, fixed, starts=args.starts, polish=args.polish, seed=args.seed,
-                 progress=print, regime=args.regime)
+                 progress=print, regime=args.regime, global_stage=args.global_stage)
     held = None
     if held_out is not None and len(held_out):
         held = (held_out, predict(result, held_out))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..fitting.optimise import DEFAULT_STARTS, GLOBAL_STAGES, NLOPT_EVALUATIONS_PER_START
 from ..plugin import registry
 from .appearance import _cmd_albedo, _cmd_colour, _cmd_unmix
 from .fitting import _cmd_compare_models, _cmd_fit, _cmd_simulate
@@ -195,8 +196,23 @@ def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--by", default="volume", choices=["mass", "volume"],
                    help="how the --mix start fractions are given (default volume)")
     p.add_argument("--free-radii", action="store_true", help="fit the radii too")
+    _add_global_options(p)
+    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", default=None, help="write the result as JSON")
     p.set_defaults(func=_cmd_unmix)
+
+
+def _add_global_options(p: argparse.ArgumentParser) -> None:
+    """``--global`` and ``--starts`` of ``fit`` and ``unmix`` (docs/fitting.md, "The global
+    stage")."""
+    p.add_argument("--global", dest="global_stage", choices=GLOBAL_STAGES, default="sobol",
+                   help="the global stage: sobol (Sobol starts, batched Levenberg-Marquardt; "
+                        "the default), mlsl or crs2 (nlopt, then the same Levenberg-Marquardt "
+                        "steps; needs nlopt)")
+    p.add_argument("--starts", type=int, default=DEFAULT_STARTS,
+                   help="starts of the global phase (Sobol design; with the radius free, on a "
+                        f"log grid of radii); mlsl and crs2: {NLOPT_EVALUATIONS_PER_START} "
+                        "model evaluations per start")
 
 
 def _add_colour_parser(sub: argparse._SubParsersAction) -> None:
@@ -245,9 +261,7 @@ def _add_fit_parser(sub: argparse._SubParsersAction) -> None:
     _add_set_option(p, "a fixed plugin property, e.g. --set tau_o=0.6667 (repeatable)")
     p.add_argument("--fit-incidences", default=None, metavar="DEG,DEG,...",
                    help="fit only these incidences and report the prediction of the others")
-    p.add_argument("--starts", type=int, default=64,
-                   help="starts of the global phase (Sobol design; with the radius free, on a "
-                        "log grid of radii)")
+    _add_global_options(p)
     p.add_argument("--polish", type=int, default=4,
                    help="distinct end points of the global phase polished (scipy)")
     p.add_argument("--regime", choices=("ebs", "free"), default="ebs",

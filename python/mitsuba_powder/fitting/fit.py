@@ -49,9 +49,13 @@ from ..plugin.grains import GRAIN_VARIABLES, GrainOptics
 from ..variants import use_variant
 from .optimise import (
     AGREEMENT,
+    DEFAULT_STARTS,
+    NLOPT_EVALUATIONS_PER_START,
     MultistartResult,
     check_determined,
+    check_global_stage,
     multistart,
+    nlopt_search,
     sobol_starts,
 )
 from .problem import DEFAULT_RADIUS, GRAIN_SETTINGS, Problem
@@ -78,8 +82,7 @@ __all__ = [
 #: Radii of the log grid the global phase holds the radius at (every Mie branch is tried)
 PROFILE_RADII = 32
 
-#: Starts of the global phase, and distinct end points polished
-DEFAULT_STARTS = 64
+#: Distinct end points of the global phase polished (its starts: optimise.DEFAULT_STARTS)
 DEFAULT_POLISH = 4
 
 #: The paper's six (Table 1, with the effective radius): the default for several wavelengths
@@ -364,7 +367,7 @@ def radius_branches(wavelength: float, albedo: float, albedo_sigma: float, fixed
 def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = None,
         starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH, seed: int = 0,
         max_iterations: int = 60, progress: Callable[[str], None] | None = None,
-        regime: str = "ebs") -> FitResult:
+        regime: str = "ebs", global_stage: str = "sobol") -> FitResult:
     """Fit the plugin to ``data``.
 
     Args:
@@ -380,11 +383,18 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
         regime: ``"ebs"`` bounds the extinction so that kappa / k0 <= 0.25 at every fitted
             wavelength (the narrow-cone regime of enhanced back-scattering theory; a fit on
             that bound says so), ``"free"`` keeps the full range.
+        global_stage: ``"sobol"`` (the strategy above) or nlopt's ``"mlsl"`` or ``"crs2"``
+            over every free variable with
+            :data:`~mitsuba_powder.fitting.optimise.NLOPT_EVALUATIONS_PER_START` single-point
+            evaluations per start, then the same Levenberg-Marquardt steps and polish
+            (:func:`~mitsuba_powder.fitting.optimise.nlopt_search`; docs/fitting.md).
 
     Raises:
         ValueError: unknown, repeated or inconsistent parameter names; starts or polish < 1;
-            an unknown regime.
+            an unknown regime or global stage.
+        ImportError: ``mlsl`` or ``crs2`` without nlopt installed.
     """
+    check_global_stage(global_stage)
     check_range("starts", starts, 1)
     check_range("polish", polish, 1)
     if len(data) == 0:
@@ -396,11 +406,27 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
     # once for the whole fit: switching variants is slow
     with use_variant(batch_variant(data.wavelength)):
         return _fit(data, list(free or default_free(data, fixed)), dict(fixed or {}), starts,
-                    polish, seed, max_iterations, progress, regime)
+                    polish, seed, max_iterations, progress, regime, global_stage)
 
 
-def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress, regime
-         ) -> FitResult:
+def _search(problem: Problem, global_stage: str, starts: int, polish_count: int, seed: int,
+            max_iterations: int, progress: Callable[[str], None] | None) -> MultistartResult:
+    """The global stage and the polish: Sobol starts (:func:`_starts`) with the grains held in
+    the batched phase, or nlopt's MLSL or CRS2 from the default start over every variable."""
+    if global_stage != "sobol":
+        return nlopt_search(problem, global_stage, NLOPT_EVALUATIONS_PER_START * starts, seed,
+                            problem.start(), polish_count, max_iterations, progress=progress)
+    y0 = _starts(problem, starts, seed)
+    hold = problem.hold_grains()
+    problem.grain_derivatives = False  # the grains are held during the global phase
+    return multistart(
+        problem, y0, polish_count, hold if hold.any() else None, max_iterations,
+        refine_count=max(16, starts // 4), progress=progress,
+        before_free=lambda: setattr(problem, "grain_derivatives", True))
+
+
+def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress, regime,
+         global_stage) -> FitResult:
     t0 = time.perf_counter()
     problem = Problem(data, free, fixed, regime)
     check_determined(data.geometry_summary()["geometries"], len(problem.names),
@@ -412,13 +438,8 @@ def _fit(data, free, fixed, starts, polish_count, seed, max_iterations, progress
             if "tau_o" in optics else ""))
         if "notice" in optics:
             progress(f"notice: {optics['notice']}")
-    y0 = _starts(problem, starts, seed)
-    hold = problem.hold_grains()
-    problem.grain_derivatives = False  # the grains are held during the global phase
-    result: MultistartResult = multistart(
-        problem, y0, polish_count, hold if hold.any() else None, max_iterations,
-        refine_count=max(16, starts // 4), progress=progress,
-        before_free=lambda: setattr(problem, "grain_derivatives", True))
+    result = _search(problem, global_stage, starts, polish_count, seed, max_iterations,
+                     progress)
     y = result.y
     x = problem.x_of(y)[0]
 

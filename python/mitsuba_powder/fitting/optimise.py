@@ -34,6 +34,19 @@ from .._checks import check_range
 #: Relative cost difference under which two starts "reach the same loss"
 AGREEMENT = 0.01
 
+#: The global stages: Sobol starts with batched Levenberg-Marquardt (:func:`multistart`), or
+#: nlopt's MLSL or CRS2 followed by the same Levenberg-Marquardt steps and polish
+#: (:func:`nlopt_search`; nlopt is an optional dependency)
+GLOBAL_STAGES = ("sobol", "mlsl", "crs2")
+
+#: Relative cost change at which an MLSL local search (LD_MMA) stops
+MLSL_LOCAL_FTOL = 1e-6
+
+#: Starts of the Sobol stage, and the nlopt stages' budget per start (single-point
+#: evaluations; about what a Sobol start spends, benchmarks/bench_unmix_global.py)
+DEFAULT_STARTS = 64
+NLOPT_EVALUATIONS_PER_START = 40
+
 
 @dataclass(frozen=True)
 class ParamSpec:
@@ -357,6 +370,16 @@ def multistart(problem: BatchProblem, starts: np.ndarray, polish_count: int = 4,
                       f"evaluations), best cost {np.min(second.cost):.6g}")
         if progress:
             progress(stages[-1])
+    return _polish_best(problem, ends, costs, evaluations, t0, stages, polish_count,
+                        max_polish_evaluations, progress)
+
+
+def _polish_best(problem: BatchProblem, ends: np.ndarray, costs: np.ndarray, evaluations: int,
+                 t0: float, stages: list[str], polish_count: int, max_polish_evaluations: int,
+                 progress: Callable[[str], None] | None) -> MultistartResult:
+    """The common end of every global stage: the best ``polish_count`` distinct end points
+    (within ten times the best cost) are polished, and the agreement is counted."""
+    span = np.maximum(problem.upper - problem.lower, 1e-30)
     # end points in far worse basins (ten times the best cost) are not worth polishing
     chosen = [i for i in distinct_best(ends, costs, polish_count, span)
               if costs[i] <= 10.0 * np.min(costs)]
@@ -373,3 +396,110 @@ def multistart(problem: BatchProblem, starts: np.ndarray, polish_count: int = 4,
     agreeing = int(np.sum(costs <= costs[best] * (1.0 + AGREEMENT) + 1e-300))
     return MultistartResult(ends[best], float(costs[best]), costs, chosen, agreeing,
                             evaluations, time.perf_counter() - t0, stages)
+
+
+def check_global_stage(name: str, option: str = "global_stage") -> str:
+    """``name`` if it is one of :data:`GLOBAL_STAGES`; else an error naming ``option``, the
+    value and the valid values."""
+    if name not in GLOBAL_STAGES:
+        raise ValueError(f"{option} = {name!r} is not a global stage; valid values are "
+                         f"{', '.join(GLOBAL_STAGES)}")
+    return name
+
+
+def _nlopt():
+    """The nlopt module, or an error saying how to get it."""
+    try:
+        import nlopt
+    except ImportError:
+        raise ImportError("the global stages mlsl and crs2 use nlopt, which is not installed: "
+                          "pip install 'mitsuba-powder[nlopt]' (or pip install nlopt), or use "
+                          "the sobol stage") from None
+    return nlopt
+
+
+def _nlopt_optimiser(nlopt, method: str, p: int, problem: BatchProblem):
+    """nlopt's ``GN_MLSL_LDS`` (low-discrepancy MLSL, its local searches by ``LD_MMA`` on the
+    gradient ``2 J^T r``; ``LD_LBFGS`` stops the whole run with a generic failure on the
+    unmixing problems) or ``GN_CRS2_LM`` over the box."""
+    algorithm = {"mlsl": nlopt.GN_MLSL_LDS, "crs2": nlopt.GN_CRS2_LM}[method]
+    opt = nlopt.opt(algorithm, p)
+    opt.set_lower_bounds(problem.lower)
+    opt.set_upper_bounds(problem.upper)
+    if method == "mlsl":
+        local = nlopt.opt(nlopt.LD_MMA, p)
+        local.set_ftol_rel(MLSL_LOCAL_FTOL)
+        local.set_lower_bounds(problem.lower)
+        local.set_upper_bounds(problem.upper)
+        opt.set_local_optimizer(local)
+    return opt
+
+
+def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed: int,
+                 start: np.ndarray | None = None, polish_count: int = 4,
+                 max_iterations: int = 60, max_polish_evaluations: int = 200,
+                 progress: Callable[[str], None] | None = None) -> MultistartResult:
+    """A global stage by nlopt (``method`` ``mlsl`` or ``crs2``, :func:`_nlopt_optimiser`) of
+    ``max_evaluations`` single-point evaluations of the cost, from ``start`` (default: the
+    middle of the box), its random numbers seeded with ``seed`` (nlopt.srand: the same seed,
+    the same result). Every point it evaluates is kept; the best ``polish_count`` distinct ones
+    take the batched Levenberg-Marquardt steps of :func:`multistart` with every variable free
+    and its polish. ``evaluations`` of the result: the nlopt points, then batch evaluations of
+    LM and single-point ones of the polish.
+
+    Raises:
+        ValueError: an unknown method or max_evaluations < 1.
+        ImportError: nlopt is not installed.
+    """
+    check_global_stage(method)
+    if method == "sobol":
+        raise ValueError("nlopt_search runs mlsl or crs2; the sobol stage is multistart()")
+    check_range("max_evaluations", max_evaluations, 1)
+    nlopt = _nlopt()
+    t0 = time.perf_counter()
+    points: list[np.ndarray] = []
+    costs: list[float] = []
+
+    def objective(y: np.ndarray, grad: np.ndarray) -> float:
+        if grad.size:
+            r, jac = problem.jacobian(y[None])
+            r = r[0]
+            grad[:] = 2.0 * (jac[0].T @ r)
+        else:
+            r = problem.residuals(y[None])[0]
+        c = float(r @ r)
+        if not math.isfinite(c):
+            c = 1e300  # outside the model's domain: the worst cost, never a NaN to nlopt
+            if grad.size:
+                grad[:] = 0.0
+        points.append(np.array(y, dtype=np.float64))
+        costs.append(c)
+        return c
+
+    opt = _nlopt_optimiser(nlopt, method, len(problem.lower), problem)
+    opt.set_min_objective(objective)
+    opt.set_maxeval(int(max_evaluations))
+    nlopt.srand(int(seed))
+    y0 = (problem.lower + problem.upper) / 2.0 if start is None else np.asarray(start, float)
+    stopped = ""
+    try:
+        opt.optimize(np.clip(y0, problem.lower, problem.upper))
+    except (nlopt.RoundoffLimited, RuntimeError) as error:
+        # nlopt's own failures (not the objective's errors, which propagate as they are):
+        # the points so far stand, the LM steps and the polish follow
+        stopped = f" (nlopt stopped early: {type(error).__name__} {error})"
+    stages = [f"global: nlopt {method} ({opt.get_algorithm_name()}), {len(points)} "
+              f"evaluations, best cost {min(costs):.6g}{stopped}"]
+    if progress:
+        progress(stages[-1])
+    all_points, all_costs = np.array(points), np.array(costs)
+    span = np.maximum(problem.upper - problem.lower, 1e-30)
+    best = distinct_best(all_points, all_costs, polish_count, span)
+    lm = batch_levenberg_marquardt(problem, all_points[best], max_iterations)
+    stages.append(f"Levenberg-Marquardt from the best {len(best)} distinct points: "
+                  f"{lm.iterations} iterations ({lm.evaluations} batch evaluations), best "
+                  f"cost {np.min(lm.cost):.6g}")
+    if progress:
+        progress(stages[-1])
+    return _polish_best(problem, lm.y.copy(), lm.cost.copy(), len(points) + lm.evaluations,
+                        t0, stages, polish_count, max_polish_evaluations, progress)

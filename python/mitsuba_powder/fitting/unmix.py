@@ -21,14 +21,25 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .. import _optics
+from .._checks import check_range
 from ..plugin import registry
 from ..plugin.grains import GrainOptics, volume_fractions
+from .optimise import (
+    DEFAULT_STARTS,
+    NLOPT_EVALUATIONS_PER_START,
+    MultistartResult,
+    check_global_stage,
+    multistart,
+    nlopt_search,
+    sobol_starts,
+)
 
 #: a fitted radius (um) stays within this factor of its start
 RADIUS_FACTOR = 10.0
+#: the amounts of populations 2..n relative to population 1 stay within [1/this, this]
+AMOUNT_LIMIT = 1e6
 #: correlation beyond which two variables are reported as not separately determined
 CORRELATION_LIMIT = 0.95
 
@@ -47,6 +58,8 @@ class UnmixResult:
         chi2: weighted sum of squared residuals; ``dof``: degrees of freedom.
         model: the fitted albedo per wavelength.
         warnings: what the data cannot decide.
+        evaluations: model evaluations of the search (points, with or without derivatives);
+            ``seconds``: its wall time; ``global_stage``: the search that found it.
     """
 
     materials: list[str]
@@ -59,6 +72,9 @@ class UnmixResult:
     dof: int
     model: np.ndarray
     warnings: list[str] = field(default_factory=list)
+    evaluations: int = 0
+    seconds: float = 0.0
+    global_stage: str = "sobol"
 
 
 def _fractions(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,14 +128,18 @@ class _Mixture:
     def radii(self, z: np.ndarray) -> np.ndarray:
         return np.exp(z[len(self.r0) - 1:]) if self.free_radii else self.r0
 
-    def __call__(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, z: np.ndarray, derivatives: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
         n = len(self.r0)
         a = np.exp(z[:n - 1])
         radii = self.radii(z)
         f, g = _fractions(a)
         pops = [(float(radii[0]), None, self.indices[0])] + [
             (float(radii[j]), float(f[j]), self.indices[j]) for j in range(1, n)]
-        values, d = _optics.mixture_albedo("sphere", list(map(float, self.wl)), pops, True)
+        values, d = _optics.mixture_albedo("sphere", list(map(float, self.wl)), pops,
+                                           derivatives)
+        if not derivatives:
+            return np.asarray(values), None
         d = np.asarray(d)  # (W, [d r1, d r2, d f2, d r3, d f3, ...])
         d_f = d[:, [2 + 2 * (j - 1) for j in range(1, n)]]  # d rho / d f_j, f_1 = 1 - sum
         # the model's fractions f_j (j >= 2) depend on a; f_1 follows them
@@ -130,20 +150,59 @@ class _Mixture:
         return np.asarray(values), jac
 
 
-def _solve(model: _Mixture, z0: np.ndarray, rho: np.ndarray, sig: np.ndarray) -> np.ndarray:
-    """The weighted least-squares variables, amounts within [1e-6, 1e6] and radii within
-    :data:`RADIUS_FACTOR` of their start."""
-    n = len(model.r0)
-    lo = np.full(len(z0), -math.log(1e6))
-    hi = np.full(len(z0), math.log(1e6))
-    if model.free_radii:
-        lo[n - 1:] = np.log(model.r0 / RADIUS_FACTOR)
-        hi[n - 1:] = np.log(model.r0 * RADIUS_FACTOR)
-    z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
-    sol = least_squares(lambda z: (model(z)[0] - rho) / sig, z0,
-                        jac=lambda z: model(z)[1] / sig[:, None], bounds=(lo, hi), method="trf",
-                        x_scale="jac", ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=500)
-    return sol.x
+class _Residuals:
+    """The weighted residuals ``(model(z) - rho) / sigma`` of :class:`_Mixture` and their
+    Jacobian, batched over points (the :class:`~mitsuba_powder.fitting.optimise.BatchProblem`
+    of the search; one model evaluation per distinct point: the optimiser pads a batch by
+    repeating its last row, which is evaluated once). ``evaluations`` counts the points."""
+
+    def __init__(self, model: _Mixture, rho: np.ndarray, sig: np.ndarray):
+        self.model, self.rho, self.sig = model, rho, sig
+        n = len(model.r0)
+        self.lower = np.full(n - 1 + (n if model.free_radii else 0), -math.log(AMOUNT_LIMIT))
+        self.upper = -self.lower
+        if model.free_radii:
+            self.lower[n - 1:] = np.log(model.r0 / RADIUS_FACTOR)
+            self.upper[n - 1:] = np.log(model.r0 * RADIUS_FACTOR)
+        self.evaluations = 0
+
+    def _distinct(self, y: np.ndarray) -> int:
+        k = len(y)
+        while k > 1 and np.array_equal(y[k - 2], y[-1]):
+            k -= 1
+        self.evaluations += k
+        return k
+
+    def residuals(self, y: np.ndarray) -> np.ndarray:
+        k = self._distinct(y)
+        r = np.array([(self.model(z, False)[0] - self.rho) / self.sig for z in y[:k]])
+        return np.concatenate([r, np.repeat(r[-1:], len(y) - k, axis=0)])
+
+    def jacobian(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k = self._distinct(y)
+        out = [self.model(z) for z in y[:k]]
+        r = np.array([(v - self.rho) / self.sig for v, _ in out])
+        j = np.array([jac / self.sig[:, None] for _, jac in out])
+        return (np.concatenate([r, np.repeat(r[-1:], len(y) - k, axis=0)]),
+                np.concatenate([j, np.repeat(j[-1:], len(y) - k, axis=0)]))
+
+
+def _search(problem: _Residuals, z0: np.ndarray, global_stage: str, starts: int, seed: int,
+            max_evaluations: int | None) -> MultistartResult:
+    """The weighted least-squares variables by the global stage of
+    :mod:`~mitsuba_powder.fitting.optimise`: ``sobol``, ``starts`` Sobol starts over the box
+    (the ``--mix`` start first) with batched Levenberg-Marquardt; ``mlsl`` or ``crs2``, nlopt
+    from the ``--mix`` start with ``max_evaluations`` model evaluations (default
+    :data:`~mitsuba_powder.fitting.optimise.NLOPT_EVALUATIONS_PER_START` per start); then the
+    polish."""
+    z0 = np.clip(z0, problem.lower + 1e-9, problem.upper - 1e-9)
+    if global_stage == "sobol":
+        y0 = sobol_starts(problem.lower, problem.upper, starts, seed)
+        y0[0] = z0
+        return multistart(problem, y0, max_polish_evaluations=500)
+    budget = max_evaluations or NLOPT_EVALUATIONS_PER_START * starts
+    return nlopt_search(problem, global_stage, budget, seed, start=z0,
+                        max_polish_evaluations=500)
 
 
 def _covariance(jw: np.ndarray, warnings: list[str]) -> np.ndarray:
@@ -165,7 +224,8 @@ def _undetermined(materials: list[str], f: np.ndarray, f_err: np.ndarray, cov_z:
             warnings.append(f"the fraction of {materials[j]} ({f[j]:.3g} +/- {f_err[j]:.2g}) is "
                             "not determined by the data")
     d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
-    corr = cov_z / np.outer(d, d)
+    with np.errstate(over="ignore", invalid="ignore"):  # a singular direction: inf / inf
+        corr = cov_z / np.outer(d, d)
     names = [f"fraction of {m}" for m in materials[1:]] + (
         [f"radius of {m}" for m in materials] if free_radii else [])
     for i in range(len(corr)):
@@ -185,7 +245,9 @@ def _mass_fractions(materials: list[str], f: np.ndarray) -> np.ndarray | None:
 
 
 def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
-          free_radii: bool = False, by: str = "volume") -> UnmixResult:
+          free_radii: bool = False, by: str = "volume", global_stage: str = "sobol",
+          starts: int = DEFAULT_STARTS, seed: int = 0, max_evaluations: int | None = None
+          ) -> UnmixResult:
     """Fit the fractions of a mixture of known materials to an albedo spectrum.
 
     Args:
@@ -197,12 +259,23 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
             ``free_radii``); population 1 (the first) must be present in the result.
         free_radii: fit the radii too (within a factor :data:`RADIUS_FACTOR` of the start).
         by: how the start fractions are given (``mass`` or ``volume``).
+        global_stage: the search (:data:`~mitsuba_powder.fitting.optimise.GLOBAL_STAGES`):
+            ``sobol`` (``starts`` Sobol starts, ``parts`` the first, batched
+            Levenberg-Marquardt), ``mlsl`` or ``crs2`` (nlopt from ``parts``, then the same
+            Levenberg-Marquardt steps); docs/fitting.md says which measured better.
+        starts: Sobol starts (1: from ``parts`` only); with nlopt, the budget is
+            ``max_evaluations`` or :data:`NLOPT_EVALUATIONS_PER_START` per start.
+        seed: of the Sobol scrambling or of nlopt's random numbers.
 
     Raises:
         ValueError: fewer than two populations or more than four, arrays of different lengths,
             a non-positive or non-finite sigma, an albedo outside [0, 1], fewer wavelengths
-            than free variables, or what :func:`volume_fractions` and the grain optics refuse.
+            than free variables, an unknown global stage, starts < 1, or what
+            :func:`volume_fractions` and the grain optics refuse.
+        ImportError: ``mlsl`` or ``crs2`` without nlopt installed.
     """
+    check_global_stage(global_stage)
+    check_range("starts", starts, 1)
     wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
     rho = np.atleast_1d(np.asarray(albedo, dtype=float))
     sig = np.atleast_1d(np.asarray(sigma, dtype=float))
@@ -216,7 +289,9 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     if free_radii:
         z0 = np.concatenate([z0, np.log(r0)])
     model = _Mixture(wl, indices, r0, free_radii)
-    z = _solve(model, z0, rho, sig)
+    problem = _Residuals(model, rho, sig)
+    search = _search(problem, z0, global_stage, starts, seed, max_evaluations)
+    z = search.y
     values, jac = model(z)
     res = (values - rho) / sig
     warnings: list[str] = []
@@ -232,5 +307,10 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
         r_err = radii * np.sqrt(np.maximum(np.diag(cov_z)[n - 1:], 0.0))
     materials = [m for m, _, _ in parts]
     warnings += _undetermined(materials, f, f_err, cov_z, free_radii)
+    if len(search.start_costs) > 1 and search.agreeing < 2:
+        warnings.append(f"only {search.agreeing} of {len(search.start_costs)} searches reached "
+                        f"the best chi2 (within 1 %): it may not be the global optimum; try "
+                        "more starts")
     return UnmixResult(materials, f, f_err, _mass_fractions(materials, f), radii, r_err,
-                       float(res @ res), len(wl) - len(z), values, warnings)
+                       float(res @ res), len(wl) - len(z), values, warnings,
+                       problem.evaluations, search.seconds, global_stage)
