@@ -53,7 +53,7 @@ SUCCESS = 0.02
 COLUMNS = [("mixture", "mixture", "s"), ("search", "search", "s"),
            ("success", "success (2 %)", ".0%"), ("reached_truth", "chi2 <= truth", ".0%"),
            ("reached_best", "best known", ".0%"),
-           ("chi2_dof", "median chi2/dof", ".3g"), ("worst_error", "worst |df|", ".3f"),
+           ("chi2_dof", "median chi2/dof", ".3g"), ("worst_error", "worst fraction error", ".3f"),
            ("evaluations", "evaluations", ".0f"), ("seconds", "seconds", ".2f")]
 
 

@@ -15,6 +15,13 @@ all of them in one Dr.Jit launch). The strategy:
 4. **Agreement**: how many starts end within 1 % of the best cost. A fit with fewer than two is
    not trusted to be the global optimum (:attr:`MultistartResult.agreeing`).
 
+The global stage of 1-2 may instead be nlopt's (:func:`nlopt_search`, ``GLOBAL_STAGES``
+``mlsl`` or ``crs2``; nlopt is an optional dependency): its single-point evaluations are
+recorded, and the best distinct points take the batched Levenberg-Marquardt steps, the polish
+and the agreement count above. The Sobol stage stays the default: on multimodal unmixing it
+reached low costs at least as often for the same evaluations (docs/fitting.md, "The global
+stage").
+
 Variables are in the optimiser's space ``y``: :class:`ParamSpec` maps a bounded parameter to
 ``y = log10(x)`` (positive scale parameters) or ``y = x``.
 """
