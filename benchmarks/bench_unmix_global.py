@@ -106,12 +106,12 @@ def summary(mixture: str, search: str, runs: list[dict]) -> dict:
 
 def figure(path, rows: list[dict]) -> None:
     plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4))
+    fig, axes = plt.subplots(1, 4, figsize=(13, 3.4))
     mixtures = list(dict.fromkeys(r["mixture"] for r in rows))
     width = 0.8 / len(SEARCHES)
-    for ax, key, label in zip(axes, ("success", "evaluations", "seconds"),
-                              ("success rate (fractions within 2 %)", "model evaluations",
-                               "seconds")):
+    for ax, key, label in zip(axes, ("success", "reached_best", "evaluations", "seconds"),
+                              ("fractions within 2 % (share)", "best known chi2 (share)",
+                               "model evaluations (median)", "seconds (median)")):
         for k, search in enumerate(SEARCHES):
             values = [next(r[key] for r in rows if r["mixture"] == m and r["search"] == search)
                       for m in mixtures]
