@@ -88,6 +88,8 @@ def test_unknown_global_stage_is_an_error():
         unmix(WAVELENGTHS, albedo, sigma, START, global_stage="simplex")
     with pytest.raises(ValueError, match=r"starts = 0 is out of range"):
         unmix(WAVELENGTHS, albedo, sigma, START, starts=0)
+    with pytest.raises(ValueError, match=r"max_evaluations = 0 is out of range"):
+        unmix(WAVELENGTHS, albedo, sigma, START, global_stage="crs2", max_evaluations=0)
 
 
 def test_mass_fractions_use_the_densities():

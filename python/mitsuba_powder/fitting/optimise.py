@@ -50,7 +50,8 @@ GLOBAL_STAGES = ("sobol", "mlsl", "crs2")
 MLSL_LOCAL_FTOL = 1e-6
 
 #: Starts of the Sobol stage, and the nlopt stages' budget per start (single-point
-#: evaluations; about what a Sobol start spends, benchmarks/bench_unmix_global.py)
+#: evaluations; a Sobol start of unmixing with the radii free spends 41-57,
+#: benchmarks/bench_unmix_global.py)
 DEFAULT_STARTS = 64
 NLOPT_EVALUATIONS_PER_START = 40
 

@@ -200,7 +200,7 @@ def _search(problem: _Residuals, z0: np.ndarray, global_stage: str, starts: int,
         y0 = sobol_starts(problem.lower, problem.upper, starts, seed)
         y0[0] = z0
         return multistart(problem, y0, max_polish_evaluations=500)
-    budget = max_evaluations or NLOPT_EVALUATIONS_PER_START * starts
+    budget = NLOPT_EVALUATIONS_PER_START * starts if max_evaluations is None else max_evaluations
     return nlopt_search(problem, global_stage, budget, seed, start=z0,
                         max_polish_evaluations=500)
 
@@ -266,11 +266,14 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
         starts: Sobol starts (1: from ``parts`` only); with nlopt, the budget is
             ``max_evaluations`` or :data:`NLOPT_EVALUATIONS_PER_START` per start.
         seed: of the Sobol scrambling or of nlopt's random numbers.
+        max_evaluations: the model evaluations of an nlopt stage (default
+            :data:`NLOPT_EVALUATIONS_PER_START` x ``starts``), before its Levenberg-Marquardt
+            steps and polish.
 
     Raises:
         ValueError: fewer than two populations or more than four, arrays of different lengths,
             a non-positive or non-finite sigma, an albedo outside [0, 1], fewer wavelengths
-            than free variables, an unknown global stage, starts < 1, or what
+            than free variables, an unknown global stage, starts or max_evaluations < 1, or what
             :func:`volume_fractions` and the grain optics refuse.
         ImportError: ``mlsl`` or ``crs2`` without nlopt installed.
     """
