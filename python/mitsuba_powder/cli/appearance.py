@@ -155,6 +155,12 @@ def _cmd_unmix(args: argparse.Namespace) -> int:
     from ..outputs import check_finite_json, output_file
     from ..plugin.grains import parse_mix
 
+    if args.baseline is not None:
+        return _cmd_unmix_reflectance(args)
+    extra = [f"--{n}" for n in ("endmembers", "tints") if getattr(args, n) is not None]
+    if extra or args.set:
+        raise ValueError(f"{', '.join(extra or ['--set'])} need --baseline (a reflectance "
+                         "spectrum); without it the CSV is an albedo spectrum")
     wl, albedo, sigma = _read_albedo_csv(args.albedo)
     parts = parse_mix(args.mix)
     out = output_file(args.json, "--json") if args.json else None
@@ -179,6 +185,107 @@ def _cmd_unmix(args: argparse.Namespace) -> int:
                "radius_errors_um": r.radius_errors.tolist(), "chi2": r.chi2, "dof": r.dof,
                "global_stage": r.global_stage, "evaluations": r.evaluations,
                "warnings": r.warnings}
+        check_finite_json(doc, str(out))
+        out.write_text(json.dumps(doc, indent=1) + "\n")
+        print(f"wrote {out}")
+    return 0
+
+
+def _read_swatches(args, wl) -> tuple:
+    """(endmembers (n, W), tints or None) of ``unmix --baseline``: the CSVs of ``--endmembers``
+    and ``--tints``, each on the measured wavelengths."""
+    import numpy as np
+
+    def spectrum(path: str, flag: str):
+        w, r = np.array(_read_csv_columns(
+            path, f"{flag} {path}: no such file", flag, ["wavelength", "reflectance"],
+            "wavelength in nm, reflectance")).T
+        if w.shape != wl.shape or not np.allclose(w, wl, rtol=0, atol=1e-6):
+            raise ValueError(f"{flag} {path}: its wavelengths differ from the mixture's "
+                             f"({len(w)} against {len(wl)} values)")
+        return r
+
+    if args.endmembers is None:
+        raise ValueError("--baseline needs --endmembers A.csv,B.csv,... (each pure material's "
+                         "reflectance, in the order of --mix)")
+    ends = np.array([spectrum(p.strip(), "--endmembers") for p in args.endmembers.split(",")])
+    tints = None
+    if args.tints is not None:
+        tints = []
+        for item in args.tints.split(","):
+            path, sep, fraction = item.strip().rpartition(":")
+            if not sep or not path:
+                raise ValueError(f"--tints item {item!r} is not FILE.csv:FRACTION (e.g. "
+                                 "tint.csv:10%)")
+            try:
+                c = float(fraction[:-1]) / 100 if fraction.endswith("%") else float(fraction)
+            except ValueError:
+                raise ValueError(f"--tints item {item!r}: the fraction {fraction!r} is not a "
+                                 "number or a percentage") from None
+            tints.append((spectrum(path, "--tints"), c))
+    return ends, tints
+
+
+def _cmd_unmix_reflectance(args: argparse.Namespace) -> int:
+    """``unmix --baseline``: a reflectance spectrum unmixed by Hapke's rule, Kubelka-Munk or
+    both beside the powder model, a row per method."""
+    import json
+
+    import numpy as np
+
+    from ..fitting.unmix_baselines import unmix_hapke, unmix_km, unmix_powder
+    from ..outputs import check_finite_json, output_file
+    from ..plugin.grains import parse_mix
+
+    if args.free_radii:
+        raise ValueError("--free-radii is not available with --baseline (the baselines have "
+                         "no radii to fit)")
+    wl, r, sigma = np.array(_read_csv_columns(
+        args.albedo, f"{args.albedo}: no such file", "the reflectance CSV",
+        ["wavelength", "reflectance", "sigma"],
+        "wavelength in nm, reflectance, its standard uncertainty")).T
+    parts = parse_mix(args.mix)
+    out = output_file(args.json, "--json") if args.json else None
+    ends, tints = _read_swatches(args, wl)
+    props = {k: _value(v) for k, v in (_parse_define(d) for d in args.set)}
+    if props and args.baseline != "all":
+        raise ValueError("--set gives the powder row's properties: only with --baseline all")
+    runs = []
+    if args.baseline == "all":
+        runs.append(lambda: unmix_powder(wl, r, sigma, parts, args.by, args.geometry, props))
+    if args.baseline in ("hapke", "all"):
+        runs.append(lambda: unmix_hapke(wl, r, sigma, ends, parts, args.by, args.geometry))
+    if args.baseline in ("km", "all"):
+        if args.geometry.strip() not in ("0:d", "0/d"):
+            raise ValueError(f"--geometry {args.geometry}: Kubelka-Munk's R_inf is a "
+                             "hemispherical reflectance; give 0:d")
+        runs.append(lambda: unmix_km(wl, r, sigma, ends, parts, args.by, tints))
+    results = [run() for run in runs]
+    print(f"unmixing the reflectance {args.albedo}: {len(wl)} wavelengths, geometry "
+          f"{args.geometry}")
+    print(f"{'method':>21s} {'material':>12s} {'mass':>8s} {'+/-':>7s} {'volume':>8s} "
+          f"{'+/-':>7s}")
+    show = lambda v, j, f: "-" if v is None else format(v[j], f)  # noqa: E731
+    for u in results:
+        for j, m in enumerate(u.materials):
+            print(f"{u.method:>21s} {m:>12s} {show(u.mass_fractions, j, '8.4f')} "
+                  f"{show(u.mass_fraction_errors, j, '7.4f')} "
+                  f"{show(u.volume_fractions, j, '8.4f')} "
+                  f"{show(u.volume_fraction_errors, j, '7.4f')}")
+        print(f"{u.method:>21s} RMS reflectance {u.rms:.5f}, chi2 {u.chi2:.4g} for {u.dof} "
+              "degrees of freedom")
+        for w in u.warnings:
+            print(f"warning ({u.method}): {w}")
+    if out is not None:
+        as_list = lambda v: None if v is None else v.tolist()  # noqa: E731
+        doc = [{"method": u.method, "materials": u.materials,
+                "mass_fractions": as_list(u.mass_fractions),
+                "mass_fraction_errors": as_list(u.mass_fraction_errors),
+                "volume_fractions": as_list(u.volume_fractions),
+                "volume_fraction_errors": as_list(u.volume_fraction_errors),
+                "rms_reflectance": u.rms, "chi2": u.chi2, "dof": u.dof,
+                "reflectance": u.reflectance.tolist(), "warnings": u.warnings}
+               for u in results]
         check_finite_json(doc, str(out))
         out.write_text(json.dumps(doc, indent=1) + "\n")
         print(f"wrote {out}")

@@ -188,7 +188,8 @@ def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("unmix", help="fractions of a pigment mixture from an albedo spectrum "
                                      "(docs/fitting.md, Unmixing)")
     p.add_argument("albedo", help="CSV: wavelength (nm), single-scattering albedo, its "
-                                  "standard uncertainty (e.g. from fit with the albedo free)")
+                                  "standard uncertainty (e.g. from fit with the albedo free); "
+                                  "with --baseline: wavelength, reflectance, its uncertainty")
     p.add_argument("--mix", required=True,
                    help="the materials, start fractions and radii: material:fraction:radius,... "
                         "(2 to 4), e.g. kaolinite:80%%:1um,hematite:10%%:0.1um,"
@@ -198,6 +199,23 @@ def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--free-radii", action="store_true", help="fit the radii too")
     _add_global_options(p)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--baseline", default=None, choices=["hapke", "km", "all"],
+                   help="read the CSV as a reflectance spectrum (wavelength, reflectance, its "
+                        "standard uncertainty) and unmix it with Hapke's intimate-mixture rule, "
+                        "two-constant Kubelka-Munk, or both beside the powder model (all: "
+                        "needs --set tau_o=...) (docs/colour.md, Unmixing against the "
+                        "baselines)")
+    p.add_argument("--endmembers", default=None, metavar="A.csv,B.csv,...",
+                   help="with --baseline: each pure material's reflectance (wavelength, "
+                        "reflectance), in the order of --mix")
+    p.add_argument("--tints", default=None, metavar="T2.csv:10%%,...",
+                   help="with --baseline km or all: a tint of each pigment 2..n with the white "
+                        "(population 1) and the pigment's mass fraction in it (default: S = 1 "
+                        "for every pigment)")
+    p.add_argument("--geometry", default="0:d",
+                   help="with --baseline: the reflectance's geometry, 0:d or THETA_I:THETA_O")
+    _add_set_option(p, "with --baseline all: a plugin property of the powder row, e.g. "
+                       "--set tau_o=2 (repeatable)")
     p.add_argument("--json", default=None, help="write the result as JSON")
     p.set_defaults(func=_cmd_unmix)
 

@@ -60,6 +60,8 @@ class UnmixResult:
         warnings: what the data cannot decide.
         evaluations: model evaluations of the search (points, with or without derivatives);
             ``seconds``: its wall time; ``global_stage``: the search that found it.
+        covariance: (n, n) covariance of the volume fractions (``fraction_errors`` is the
+            square root of its diagonal).
     """
 
     materials: list[str]
@@ -75,6 +77,7 @@ class UnmixResult:
     evaluations: int = 0
     seconds: float = 0.0
     global_stage: str = "sobol"
+    covariance: np.ndarray | None = None
 
 
 def _fractions(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -316,4 +319,4 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
                         "more starts")
     return UnmixResult(materials, f, f_err, _mass_fractions(materials, f), radii, r_err,
                        float(res @ res), len(wl) - len(z), values, warnings,
-                       problem.evaluations, search.seconds, global_stage)
+                       problem.evaluations, search.seconds, global_stage, cov_f)
