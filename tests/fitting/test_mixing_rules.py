@@ -207,3 +207,10 @@ def test_unmix_cli_with_a_baseline(tmp_path, capsys):
     assert "--baseline needs --endmembers" in capsys.readouterr().err
     assert main(mix + ["--endmembers", str(tmp_path / "red.csv")]) == 2
     assert "--endmembers need --baseline" in capsys.readouterr().err
+
+
+def test_km_constants_of_a_tint_as_white_as_the_white():
+    """t = k_w: the pigment adds nothing beside the white: S at its floor, K = m S."""
+    k, s = rules.km_constants(np.full(2, 0.3), np.ones(2), 0.1, np.zeros(2))
+    np.testing.assert_array_equal(s, rules.S_FLOOR)
+    np.testing.assert_allclose(k, rules.km_ratio(0.3) * rules.S_FLOOR)

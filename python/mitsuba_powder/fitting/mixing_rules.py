@@ -42,6 +42,8 @@ import numpy as np
 
 from .._checks import check_range
 
+#: the smallest S of :func:`km_constants` (relative to the white's S = 1)
+S_FLOOR = 1e-6
 #: bisection steps of the bidirectional Hapke inversion (2^-60: to float64 precision)
 _BISECTION_STEPS = 60
 
@@ -163,9 +165,11 @@ def km_constants(masstone, tint, tint_fraction: float, white_ratio) -> tuple[np.
 
     With ``m = (K/S)`` of the masstone, ``t = (K/S)`` of the tint (mass fraction ``c`` of the
     pigment) and ``k_w = (K/S)`` of the white: ``t = (c K + (1 - c) k_w) / (c S + 1 - c)`` and
-    ``K = m S`` give ``S = (1 - c)(t - k_w) / (c (m - t))``. Where the pigment absorbs no more
-    than the tint (``m - t <= 1e-9 max(m, 1)``; e.g. where neither absorbs) the two swatches
-    cannot separate K from S and ``S = 1`` is taken (K = m).
+    ``K = m S`` give ``S = (1 - c)(t - k_w) / (c (m - t))``, kept above :data:`S_FLOOR` (a
+    tint as white as the white, ``t <= k_w``, means a pigment that neither scatters nor absorbs
+    beside it). Where the pigment absorbs no more than its tint (``m - t <= 1e-9 max(m, 1)``;
+    e.g. where neither absorbs) the two swatches cannot separate K from S and ``S = 1`` is
+    taken (K = m).
 
     Args:
         masstone: (W,) reflectance of the pure pigment.
@@ -179,10 +183,10 @@ def km_constants(masstone, tint, tint_fraction: float, white_ratio) -> tuple[np.
     c = check_range("tint_fraction", tint_fraction, 0.0, 1.0, closed="()")
     m, t = km_ratio(masstone), km_ratio(tint)
     kw = np.asarray(white_ratio, dtype=float)
-    determined = (m - t > 1e-9 * np.maximum(m, 1.0)) & (t > kw)
+    determined = m - t > 1e-9 * np.maximum(m, 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(determined, (1.0 - c) * (t - kw) / (c * (m - t)), 1.0)
-    s = np.where(np.isfinite(s) & (s > 0.0), s, 1.0)
+        s = np.where(determined, np.maximum((1.0 - c) * (t - kw) / (c * (m - t)), S_FLOOR),
+                     1.0)
     return m * s, s
 
 

@@ -124,21 +124,22 @@ def sobol_starts(lower: np.ndarray, upper: np.ndarray, count: int, seed: int) ->
 
 
 def finite_difference_jacobian(residuals: Callable[[np.ndarray], np.ndarray],
-                               lower: np.ndarray, upper: np.ndarray
+                               lower: np.ndarray, upper: np.ndarray, step: float = 1e-6
                                ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """A batched Jacobian by central differences (for float64 NumPy models), steps kept inside
-    the box."""
+    """A batched Jacobian by central differences, steps ``step * max(1, |y|)`` kept inside
+    the box (the default for float64 NumPy models; a model computed in float32, such as the
+    plugin's, needs a larger step)."""
 
     def jacobian(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r0 = residuals(y)
         jac = np.empty(r0.shape + (y.shape[1],))
         for j in range(y.shape[1]):
-            h = 1e-6 * np.maximum(1.0, np.abs(y[:, j]))
+            h = step * np.maximum(1.0, np.abs(y[:, j]))
             yp, ym = y.copy(), y.copy()
             yp[:, j] = np.minimum(y[:, j] + h, upper[j])
             ym[:, j] = np.maximum(y[:, j] - h, lower[j])
-            step = (yp[:, j] - ym[:, j])[:, None]
-            jac[:, :, j] = (residuals(yp) - residuals(ym)) / np.where(step > 0, step, 1.0)
+            span = (yp[:, j] - ym[:, j])[:, None]
+            jac[:, :, j] = (residuals(yp) - residuals(ym)) / np.where(span > 0, span, 1.0)
         return r0, jac
 
     return jacobian

@@ -132,11 +132,11 @@ class _FractionProblem:
     amounts of populations 2..n (:func:`~mitsuba_powder.fitting.unmix._fractions`), batched
     for :func:`~mitsuba_powder.fitting.optimise.multistart`."""
 
-    def __init__(self, model, target: np.ndarray, sigma: np.ndarray, n: int):
+    def __init__(self, model, target: np.ndarray, sigma: np.ndarray, n: int, step: float):
         self.model, self.target, self.sigma = model, target, sigma
         self.lower = np.full(n - 1, -_LOG_AMOUNT)
         self.upper = np.full(n - 1, _LOG_AMOUNT)
-        self.jacobian = finite_difference_jacobian(self.residuals, self.lower, self.upper)
+        self.jacobian = finite_difference_jacobian(self.residuals, self.lower, self.upper, step)
 
     def residuals(self, y: np.ndarray) -> np.ndarray:
         return np.array([(self.model(_fractions(np.exp(z))[0]) - self.target) / self.sigma
@@ -144,8 +144,10 @@ class _FractionProblem:
 
 
 def _fit_rule(method: str, model, parts, by: str, r: np.ndarray, sig: np.ndarray,
-              start: np.ndarray, seed: int) -> SpectrumUnmixing:
-    """Fit the fractions (by ``by``) of a NumPy mixing rule to the reflectance ``r``."""
+              start: np.ndarray, seed: int | None, step: float = 1e-6) -> SpectrumUnmixing:
+    """Fit the fractions (by ``by``) of a mixing rule ``model(fractions) -> reflectance`` to
+    the reflectance ``r``: from ``start`` and, unless ``seed`` is None, :data:`STARTS` Sobol
+    starts; central differences of ``step`` in the log amounts."""
     materials = [m for m, _, _ in parts]
     n = len(parts)
     if not start[0] > 0:
@@ -153,9 +155,10 @@ def _fit_rule(method: str, model, parts, by: str, r: np.ndarray, sig: np.ndarray
     if len(r) <= n - 1:
         raise ValueError(f"{len(r)} wavelengths for {n - 1} free fractions: the fit is not "
                          "determined; give more wavelengths or fewer populations")
-    problem = _FractionProblem(model, r, sig, n)
+    problem = _FractionProblem(model, r, sig, n, step)
     z0 = np.clip(np.log(np.maximum(start[1:] / start[0], 1e-6)), problem.lower, problem.upper)
-    starts = np.vstack([z0, sobol_starts(problem.lower, problem.upper, STARTS, seed)])
+    starts = z0[None] if seed is None else np.vstack(
+        [z0, sobol_starts(problem.lower, problem.upper, STARTS, seed)])
     best = multistart(problem, starts, polish_count=2)
     z = best.y
     res, jac = problem.jacobian(z[None])
@@ -165,7 +168,13 @@ def _fit_rule(method: str, model, parts, by: str, r: np.ndarray, sig: np.ndarray
     f, g = _fractions(a)
     ga = g * a[None, :]
     cov_f = ga @ cov_z @ ga.T
-    if best.agreeing < 2:
+    at_bound = np.abs(z) >= _LOG_AMOUNT * (1.0 - 1e-6)
+    if np.any(at_bound):
+        warnings.append("the amount of " + ", ".join(
+            materials[k + 1] for k in np.nonzero(at_bound)[0]) + f" relative to {materials[0]} "
+            "is at the search's bound (1e-6 or 1e6): the rule fits best at the edge of what "
+            "it can mix, and the uncertainties there are not meaningful")
+    if best.agreeing < 2 and len(starts) > 1:
         warnings.append(f"{best.agreeing} start(s) reached the best cost: the optimum may "
                         "not be global")
     warnings += _undetermined(materials, f, np.sqrt(np.maximum(np.diag(cov_f), 0.0)), cov_z,
@@ -348,7 +357,11 @@ class PowderReflectance:
 
 def unmix_powder(wl, reflectance, sigma, parts, by: str = "volume", geometry="0:d",
                  properties: dict | None = None) -> SpectrumUnmixing:
-    """The powder model's unmixing of a reflectance spectrum (module docstring).
+    """The powder model's unmixing of a reflectance spectrum (module docstring): today's
+    :func:`~mitsuba_powder.fitting.unmix.unmix` on the albedo the plugin inverts from the
+    reflectance (its uncertainty ``sigma / (dR / d rho)``), then the fractions refined on the
+    reflectance itself, with the weights of the baselines (the inversion is steep where the
+    albedo nears 1, and a linearised weight there is not the reflectance's).
 
     Args:
         wl, reflectance, sigma, parts, by, geometry: as :func:`unmix_hapke` (no endmembers:
@@ -356,18 +369,21 @@ def unmix_powder(wl, reflectance, sigma, parts, by: str = "volume", geometry="0:
         properties: the plugin's other properties (``tau_o`` required; e.g. ``energy``,
             ``extinction``, ``g``).
     """
+    from ..plugin.grains import mixture_albedo, mixture_properties
+
     wl, r, sig, _ = _check_spectra(wl, reflectance, sigma, None, parts)
     engine = PowderReflectance(wl, geometry, dict(properties or {}))
     albedo, slope, clipped = engine.albedo(r)
-    sig_albedo = sig / np.maximum(slope, 1e-6)
-    u = unmix(wl, albedo, sig_albedo, parts, by=by)
-    fitted = engine(u.model[None])[0]
-    res = (fitted - r) / sig
-    warnings = list(u.warnings)
+    u = unmix(wl, albedo, sig / np.maximum(slope, 1e-6), parts, by=by)
+
+    def model(f: np.ndarray) -> np.ndarray:
+        mix = [(m, float(v), x) for (m, _, x), v in zip(parts, f)]
+        return engine(mixture_albedo(mixture_properties(mix, "volume"), wl)[0][None])[0]
+
+    # the plugin computes in float32: differences of 1e-3 in the log amounts
+    out = _fit_rule("powder", model, parts, "volume", r, sig, u.fractions, None, 1e-3)
     if clipped:
-        warnings.append(f"{clipped} reflectance value(s) outside what albedos 0-1 give were "
-                        "read as the nearest reachable one")
-    return SpectrumUnmixing("powder", u.materials,
-                            *_both_bases(u.materials, u.fractions, u.covariance, "volume"),
-                            fitted, float(np.sqrt(np.mean((fitted - r) ** 2))),
-                            float(res @ res), u.dof, warnings)
+        out.warnings.append(f"{clipped} reflectance value(s) outside what albedos 0-1 give "
+                            "were read as the nearest reachable one by the albedo inversion "
+                            "(the start)")
+    return out
