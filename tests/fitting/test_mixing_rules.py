@@ -214,3 +214,13 @@ def test_km_constants_of_a_tint_as_white_as_the_white():
     k, s = rules.km_constants(np.full(2, 0.3), np.ones(2), 0.1, np.zeros(2))
     np.testing.assert_array_equal(s, rules.S_FLOOR)
     np.testing.assert_allclose(k, rules.km_ratio(0.3) * rules.S_FLOOR)
+
+
+def test_a_fraction_at_the_edge_is_reported():
+    """The red masstone itself, unmixed as white + red: the white's fraction goes to the edge
+    of the search, and the result says so."""
+    e = endmembers()[:2]
+    u = unmix_km(WL, e[1], np.full(len(WL), 1e-3), e,
+                 [("kaolinite", 0.5, 1.0), ("hematite", 0.5, 0.1)])
+    assert u.mass_fractions[0] < 1e-4
+    assert any("the fraction of kaolinite is below 0.0001" in w for w in u.warnings)

@@ -46,6 +46,8 @@ GRID = 33
 SAMPLES, BISECTION_STEPS = 1024, 24
 #: Sobol starts of a baseline's fit (beside the given start)
 STARTS = 16
+#: a fitted fraction below this is reported as the rule's edge (the material left out)
+ABSENT = 1e-4
 #: log amounts within +-ln(1e6), as :func:`~mitsuba_powder.fitting.unmix.unmix`
 _LOG_AMOUNT = math.log(1e6)
 
@@ -168,12 +170,11 @@ def _fit_rule(method: str, model, parts, by: str, r: np.ndarray, sig: np.ndarray
     f, g = _fractions(a)
     ga = g * a[None, :]
     cov_f = ga @ cov_z @ ga.T
-    at_bound = np.abs(z) >= _LOG_AMOUNT * (1.0 - 1e-6)
-    if np.any(at_bound):
-        warnings.append("the amount of " + ", ".join(
-            materials[k + 1] for k in np.nonzero(at_bound)[0]) + f" relative to {materials[0]} "
-            "is at the search's bound (1e-6 or 1e6): the rule fits best at the edge of what "
-            "it can mix, and the uncertainties there are not meaningful")
+    absent = [m for m, v in zip(materials, f) if v < ABSENT]
+    if absent:
+        warnings.append(f"the fraction of {', '.join(absent)} is below {ABSENT:g}: the rule "
+                        "fits best at the edge of what it can mix (without it), where the "
+                        "uncertainties are not meaningful")
     if best.agreeing < 2 and len(starts) > 1:
         warnings.append(f"{best.agreeing} start(s) reached the best cost: the optimum may "
                         "not be global")
