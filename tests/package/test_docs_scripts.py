@@ -128,3 +128,27 @@ def test_docs_scripts_do_not_write_the_committed_docs_by_default(script):
     default = output_dir(parser.parse_args([]), ROOT / "docs")
     assert default.is_dir() and ROOT not in default.parents and not any(default.iterdir())
     assert output_dir(parser.parse_args(["--refresh-docs"]), ROOT / "docs") == ROOT / "docs"
+
+
+def test_unmix_baselines_script_quick(tmp_path):
+    """docs/colour.md's table of unmixing against the baselines: each rule recovers the
+    mixture it made (within 0.01 by mass at 0.005 reflectance noise)."""
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "unmix_baselines.py"),
+                           "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+                          timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [r.split(" | ") for r in (tmp_path / "unmix_baselines_table.md").read_text()
+            .splitlines() if r.startswith("| ochre")]
+    assert len(rows) == 8
+    own = {(r[1], r[2]): float(r[4]) for r in rows}
+    assert own[("powder", "powder")] < 0.01 and own[("hapke", "hapke")] < 0.01, own
+
+
+def test_ochre_render_script_small(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "ochre_render.py"),
+                           "--spp", "2", "--res", "96x36", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    meta = json.loads((tmp_path / "ochre_render.json").read_text())
+    assert meta["variant"] == "llvm_ad_spectral" and meta["width"] == 96
+    assert (tmp_path / "ochre_render.png").stat().st_size > 5000
