@@ -6,8 +6,9 @@ baselines (docs/colour.md, "Unmixing against the baselines").
   other plugin properties given; ``tau_o`` must be given, since a mixture's own tau_o depends
   on the fractions), its uncertainty ``sigma / (dR / d rho)``; then today's
   :func:`~mitsuba_powder.fitting.unmix.unmix` (the plugin's Mie mixture rule from the
-  materials' optical constants and radii). Its reflectance is the plugin's of the fitted
-  albedo.
+  materials' optical constants and radii), whose fractions start a refinement on the
+  reflectance itself (the plugin's reflectance of the mixture's albedo), with the baselines'
+  weights.
 - ``hapke``: Hapke's intimate-mixture rule (:mod:`~mitsuba_powder.fitting.mixing_rules`): each
   pure material's albedo from its own reflectance (an endmember spectrum) by inverting Hapke's
   isotropic scatterer, the mixture's albedo their cross-section weighted mean
