@@ -9,7 +9,9 @@ same code at the 1 nm nodes, rounded to single precision and interpolated linear
 narrower than the reference grid are missed by both, so the errors of the resonant rows are
 lower bounds. The largest radius is limited by the size parameter's range (x <= 200: 11.4 um
 at 360 nm). Prints the largest relative error |rho_table - rho| / rho per material and radius,
-and the wavelength where it occurs; writes benchmarks/results/mie_table.json and .png.
+and the wavelength where it occurs, and beside it that of a polynomial of degree 32 in
+wavelength (a least-squares Chebyshev fit to the reference: what a lookup-free eval would
+evaluate); writes benchmarks/results/mie_table.json and .png.
 
     python benchmarks/bench_mie_table.py [--quick]
 """
@@ -41,9 +43,13 @@ def material_index(name: str):
     return lambda lam: np.interp(lam * 1e-3, wl, n) + 1j * np.interp(lam * 1e-3, wl, k)
 
 
-def table_error(index, radius: float, step: float) -> tuple[float, float]:
+POLY_DEGREE = 32
+
+
+def table_error(index, radius: float, step: float) -> tuple[float, float, float]:
     """(largest relative error of the interpolated 1 nm table against Mie on a grid of
-    ``step`` nm, the wavelength where it occurs)."""
+    ``step`` nm, the wavelength where it occurs, largest relative error of the polynomial of
+    degree POLY_DEGREE fitted to Mie on that grid)."""
     from mitsuba_powder import _optics
 
     nodes = np.arange(360.0, 831.0, 1.0)
@@ -56,7 +62,10 @@ def table_error(index, radius: float, step: float) -> tuple[float, float]:
     table = np.interp(fine, nodes, rho(nodes).astype(np.float32).astype(np.float64))
     err = np.abs(table - exact) / exact
     i = int(np.argmax(err))
-    return float(err[i]), float(fine[i])
+    u = (fine - 595.0) / 235.0  # [-1, 1]
+    poly = np.polynomial.chebyshev.chebval(u, np.polynomial.chebyshev.chebfit(u, exact,
+                                                                              POLY_DEGREE))
+    return float(err[i]), float(fine[i]), float(np.max(np.abs(poly - exact) / exact))
 
 
 def main() -> None:
@@ -68,12 +77,13 @@ def main() -> None:
     rows = []
     for name, index in indices.items():
         for r in radii:
-            err, at = table_error(index, r, step)
+            err, at, poly = table_error(index, r, step)
             rows.append({"material": name, "radius_um": r, "max_rel_error": err,
-                         "at_nm": at})
+                         "at_nm": at, "poly_max_rel_error": poly})
     print(f"1 nm table (single precision, linear) against Mie on a {step} nm grid, 360-830 nm")
     print_table(rows, [("material", "material", "s"), ("radius_um", "radius um", "g"),
-                       ("max_rel_error", "max rel. error", ".1e"), ("at_nm", "at nm", ".2f")])
+                       ("max_rel_error", "max rel. error", ".1e"), ("at_nm", "at nm", ".2f"),
+                       ("poly_max_rel_error", f"degree-{POLY_DEGREE} polynomial", ".1e")])
     save(args.out, "mie_table", rows, args.quick, reference_step_nm=step)
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.8))

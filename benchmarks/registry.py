@@ -202,7 +202,8 @@ BENCHMARKS: tuple[Benchmark, ...] = (
         "mie_table": _rows([
             ("material", "material", "s"), ("radius_um", "radius (um)", "g"),
             ("max_rel_error", "largest relative error of rho", ".1e"),
-            ("at_nm", "at (nm)", ".2f")])}),
+            ("at_nm", "at (nm)", ".2f"),
+            ("poly_max_rel_error", "degree-32 polynomial", ".1e")])}),
     Benchmark("bench_fit.py", "fit", ("s (first)", "loss/best", "agreeing"), {
         "fit": _fit,
         "fit_ptfe": _meta("ptfe", [
