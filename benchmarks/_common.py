@@ -94,6 +94,17 @@ def kernel_seconds(call) -> float:
                             if e["type"] == dr.KernelType.JIT))
 
 
+def cpu_seconds(call) -> float:
+    """Processor time in seconds of ``dr.eval(call())`` (every thread of this process: the
+    caller and Dr.Jit's pool). On cores shared with other processes it does not count the
+    time they hold the cores, which wall times do; with one Dr.Jit thread
+    (``dr.set_thread_count(1)``) it is the single-thread cost of the call, tracing included."""
+    t = time.process_time()
+    dr.eval(call())
+    dr.sync_thread()
+    return time.process_time() - t
+
+
 def eval_calls(bsdfs: dict, ctx, si, wo) -> dict:
     """{label: a function that evaluates that BSDF's ``eval`` at (si, wo)}, for time_in_turn."""
     return {label: functools.partial(bsdf.eval, ctx, si, wo) for label, bsdf in bsdfs.items()}
@@ -102,8 +113,8 @@ def eval_calls(bsdfs: dict, ctx, si, wo) -> dict:
 def time_in_turn(calls: dict, repeat: int, clock=wall_seconds) -> dict[str, np.ndarray]:
     """Seconds of each of ``calls`` (label: function returning Dr.Jit values), timed in turn
     within each of ``repeat`` rounds after one warm-up call each (kernel compilation), so that
-    a change of machine load hits them alike; ``clock`` times one call (wall_seconds or
-    kernel_seconds)."""
+    a change of machine load hits them alike; ``clock`` times one call (wall_seconds,
+    kernel_seconds or cpu_seconds)."""
     for call in calls.values():
         clock(call)
     times: dict[str, list[float]] = {k: [] for k in calls}

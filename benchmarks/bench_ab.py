@@ -7,11 +7,14 @@ On a shared virtual machine the ratios of bench_bsdf.py vary by 10-20 % from one
 next. Two runs of it, one per build, then cannot resolve a change of 10 %, whereas the ratio
 of two kernels timed in turn in the same process repeats to about 3 % (a control run of this
 script at 2^22 pairs: medians 0.97-1.02, docs/benchmarks.md).
-Times are the kernels' own execution times (Dr.Jit's kernel history), not wall-clock times.
+Times are the kernels' own execution times (Dr.Jit's kernel history), not wall-clock times;
+with ``--cpu-time``, the processor time of each call on one Dr.Jit thread (tracing included),
+which does not count the time other processes hold shared cores.
 Without ``--baseline`` the installed plugin is compared with itself: a control whose ratios
 should be 1 within that noise.
 
-    python benchmarks/bench_ab.py --baseline /path/to/old/powder.so [--pairs 22] [--quick]
+    python benchmarks/bench_ab.py --baseline /path/to/old/powder.so [--pairs 22] [--cpu-time]
+        [--quick]
 
 Build a baseline from an earlier commit, for the variants measured here, e.g.::
 
@@ -32,6 +35,7 @@ from registry import AB_COLUMNS
 from _common import (
     arg_parser,
     barh_figure,
+    cpu_seconds,
     eval_calls,
     kernel_seconds,
     print_table,
@@ -49,6 +53,12 @@ CONFIGS = [
     ("all, tau_o 1.5", {"tau_o": 1.5}),
     ("all, albedo 0.9", {"albedo": 0.9}),
     ("all, Mie albedo", {"albedo": None, "radius": 0.05}),
+    ("single, Mie albedo", {"albedo": None, "radius": 0.05, "lobes": "single"}),
+    # bench_bsdf.py's pigment mixture of four materials (issue 38)
+    ("all, Mie 4 materials", {"albedo": None, "radius": 0.05, "radius2": 0.2, "fraction2": 0.2,
+                              "material2": "calcite", "radius3": 1.0, "fraction3": 0.3,
+                              "material3": "kaolinite", "radius4": 0.3, "fraction4": 0.1,
+                              "material4": "magnetite"}),
     ("coherent", {"lobes": "coherent"}),
     ("surface", {"lobes": "surface"}),
 ]
@@ -60,7 +70,8 @@ def props(plugin: str, extra: dict) -> dict:
     return {k: v for k, v in out.items() if v is not None}
 
 
-def measure(variant: str, folder: Path | None, n: int, repeat: int) -> list[dict]:
+def measure(variant: str, folder: Path | None, n: int, repeat: int,
+            clock=kernel_seconds) -> list[dict]:
     use_variant(variant)
     baseline = "powder"
     if folder is not None:
@@ -72,7 +83,7 @@ def measure(variant: str, folder: Path | None, n: int, repeat: int) -> list[dict
     for label, extra in CONFIGS:
         bsdfs["new " + label] = mi.load_dict(props("powder", extra))
         bsdfs["baseline " + label] = mi.load_dict(props(baseline, extra))
-    t = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat, clock=kernel_seconds)
+    t = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat, clock=clock)
     rows = []
     for label, _ in CONFIGS:
         new, old = t["new " + label], t["baseline " + label]
@@ -95,6 +106,8 @@ def main() -> None:
                     help="powder.so of the build to compare with (default: the installed one)")
     ap.add_argument("--pairs", type=int, default=22,
                     help="log2 of the direction pairs, 10 to 24 (default 22)")
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="processor time of one Dr.Jit thread instead of the kernels' times")
     args = ap.parse_args()
     if not 10 <= args.pairs <= 24:
         ap.error(f"--pairs: {args.pairs} is outside the valid range [10, 24] (log2 of the "
@@ -102,6 +115,12 @@ def main() -> None:
     if args.baseline is not None and not args.baseline.is_file():
         ap.error(f"--baseline: no such file: {args.baseline}")
     n, repeat = (1 << 10, 2) if args.quick else (1 << args.pairs, 15)
+    clock = kernel_seconds
+    if args.cpu_time:
+        import drjit as dr
+
+        dr.set_thread_count(1)
+        clock = cpu_seconds
     with tempfile.TemporaryDirectory() as tmp:
         folder = None
         if args.baseline is not None:
@@ -110,10 +129,11 @@ def main() -> None:
             shutil.copy(args.baseline, folder / "plugins" / f"{BASELINE_NAME}.so")
         rows = []
         for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
-            rows += measure(variant, folder, n, repeat)
+            rows += measure(variant, folder, n, repeat, clock)
     print_table(rows, AB_COLUMNS)
     save(args.out, "ab", rows, args.quick, pairs=n, repeats=repeat,
-         baseline=str(args.baseline) if args.baseline else "installed (control)")
+         baseline=str(args.baseline) if args.baseline else "installed (control)",
+         clock="processor time, one thread" if args.cpu_time else "kernel execution time")
     barh_figure(args.out / "ab.png", [f"{r['variant'][8:]}: {r['configuration']}" for r in rows],
                 [r["new_vs_baseline"] for r in rows], "tab:green", "eval time, new / baseline")
 

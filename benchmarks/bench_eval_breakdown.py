@@ -18,8 +18,11 @@ with hematite's tabulated one (beside the same rows without it), and in RGB a ro
 albedo's values as a constant albedo), 2^21
 random direction pairs (random wavelengths in spectral variants), every configuration timed in
 turn within each of 9 repeats; a cost is the median of the per-repeat ratios to `principled`.
+Times are wall times, or with ``--cpu-time`` the processor time of one Dr.Jit thread
+(``cpu_seconds``: on cores shared with other processes, the time they hold the cores is not
+counted).
 
-    python benchmarks/bench_eval_breakdown.py [--quick]
+    python benchmarks/bench_eval_breakdown.py [--quick] [--cpu-time]
 """
 
 from __future__ import annotations
@@ -31,12 +34,14 @@ import numpy as np
 from _common import (
     arg_parser,
     barh_figure,
+    cpu_seconds,
     eval_calls,
     print_table,
     random_pairs,
     save,
     time_in_turn,
     use_variant,
+    wall_seconds,
 )
 
 BASE = {"type": "powder", "albedo": 0.8, "extinction": 1.0, "amplitude_surface": 1e-3}
@@ -48,7 +53,9 @@ CONFIGS = [
     ("all, conserving", "all", {"energy": "conserving"}),
     *[(f"{name}, albedo 0.9", lobes, {"albedo": 0.9}) for name, lobes in LOBES.items()
       if name in ("all", "multiple", "coherent")],
-    ("all, Mie albedo", "all", {"albedo": None, "radius": 0.05}),
+    # the Mie albedo's lobes (issue 38): what its table lookups cost in each
+    *[(f"{name}, Mie albedo", lobes, {"albedo": None, "radius": 0.05})
+      for name, lobes in LOBES.items() if name != "surface"],
     ("multiple, constant index", "multiple", {"eta": 1.35, "k": 0.0}),
     # the surface term's Fresnel factor (surface_fresnel): its cost against the same index off
     ("all, constant index", "all", {"eta": 1.35, "k": 0.0}),
@@ -73,7 +80,7 @@ def volume_path(bsdf) -> str:
                  if "volume constants" in line), "")
 
 
-def measure(variant: str, n: int, repeat: int) -> list[dict]:
+def measure(variant: str, n: int, repeat: int, clock=wall_seconds) -> list[dict]:
     """Eval time of every configuration and of principled over the same lanes."""
     use_variant(variant)
     si, wo = random_pairs(n, variant, seed=4)
@@ -86,7 +93,7 @@ def measure(variant: str, n: int, repeat: int) -> list[dict]:
         bsdfs["all, the Mie albedo's values as a constant"] = mi.load_dict(props("all", {
             "albedo": {"type": "rgb", "value": [float(v) for v in rho.ravel()]}}))
     bsdfs["principled"] = mi.load_dict({"type": "principled"})
-    times = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat)
+    times = time_in_turn(eval_calls(bsdfs, ctx, si, wo), repeat, clock=clock)
     ref = times["principled"]
     return [{"variant": variant, "configuration": label, "volume": volume_path(bsdfs[label]),
              "ms": 1e3 * float(np.median(t)),
@@ -96,15 +103,20 @@ def measure(variant: str, n: int, repeat: int) -> list[dict]:
 
 def main() -> None:
     ap = arg_parser(__doc__)
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="processor time of one Dr.Jit thread instead of wall time")
     args = ap.parse_args()
     n, repeat = (1 << 12, 2) if args.quick else (1 << 21, 9)
+    if args.cpu_time:
+        dr.set_thread_count(1)
     rows = []
     for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
-        rows += measure(variant, n, repeat)
+        rows += measure(variant, n, repeat, cpu_seconds if args.cpu_time else wall_seconds)
     print_table(rows, [("variant", "variant", "s"), ("configuration", "configuration", "s"),
                        ("volume", "volume constants", "s"), ("ms", "eval ms", ".2f"),
                        ("cost_vs_principled", "cost / principled", ".2f")])
-    save(args.out, "eval_breakdown", rows, args.quick, pairs=n, repeats=repeat)
+    save(args.out, "eval_breakdown", rows, args.quick, pairs=n, repeats=repeat,
+         clock="processor time, one thread" if args.cpu_time else "wall")
     spectral = [r for r in rows if r["variant"] == "llvm_ad_spectral"]
     barh_figure(args.out / "eval_breakdown.png", [r["configuration"] for r in spectral],
                 [r["cost_vs_principled"] for r in spectral], "tab:orange",

@@ -8,10 +8,13 @@ fused multiply-add. The lookups index a table of 472 records at 4 random wavelen
 lane as the spectral eval does (position on the 1 nm grid, floor, gather, linear
 interpolation): one float per record gathered with `dr.gather(Float, ...)`, and packets of 2,
 4 and 8 floats with `dr.gather(ArrayNf, ...)` (as the plugin's C++ `dr::gather<Packet>`);
-their rows are per wavelength, i.e. the cost of one channel of a spectral lane. Timed in turn
-within each of 15 repeats after a warm-up call that compiles every kernel; medians.
+their rows are per wavelength, i.e. the cost of one channel of a spectral lane. The row
+"4 outputs" writes each wavelength's lookups to an output of its own, as the spectral eval
+writes one value per wavelength (its base: the same kernel without the gathers). Timed in
+turn within each of 15 repeats after a warm-up call that compiles every kernel; medians of
+wall times, or with ``--cpu-time`` of the processor time of one Dr.Jit thread.
 
-    python benchmarks/bench_jit_ops.py [--quick]
+    python benchmarks/bench_jit_ops.py [--quick] [--cpu-time]
 """
 
 from __future__ import annotations
@@ -59,7 +62,24 @@ def lookups(size: int, lam: list[Float], table: Float) -> Float:
     return total
 
 
-def measure(n: int, repeat: int) -> list[dict]:
+def lookups_per_channel(size: int, lam: list[Float], table: Float) -> list[Float]:
+    """As ``lookups`` (size 0 or 2), each wavelength's sum a separate output, as the spectral
+    eval writes one value per wavelength."""
+    totals = [Float(0) for _ in range(4)]
+    for i in range(COUNT // 4):
+        for c in range(4):
+            t = dr.clip(lam[c] + 0.25 * i, 0.0, RECORDS - 2.001)
+            i0 = UInt32(dr.floor(t))
+            w = t - Float(i0)
+            if size == 0:
+                totals[c] += dr.lerp(t, 2.0 * t, w)
+            else:
+                v = dr.gather(Array2f, table, i0)
+                totals[c] += dr.lerp(v[0], v[1], w)
+    return totals
+
+
+def measure(n: int, repeat: int, clock=None) -> list[dict]:
     rng = np.random.default_rng(0)
     a = Float(rng.uniform(0.5, 2.0, n).astype(np.float32))
     b = Float(rng.uniform(0.5, 2.0, n).astype(np.float32))
@@ -80,23 +100,28 @@ def measure(n: int, repeat: int) -> list[dict]:
         "lookup, packet of 2": lambda: lookups(2, lam, table),
         "lookup, packet of 4": lambda: lookups(4, lam, table),
         "lookup, packet of 8": lambda: lookups(8, lam, table),
+        "none (lookup, 4 outputs)": lambda: lookups_per_channel(0, lam, table),
+        "lookup, packet of 2, 4 outputs": lambda: lookups_per_channel(2, lam, table),
     }
     times: dict[str, list[float]] = {k: [] for k in kernels}
     for fn in kernels.values():
         dr.eval(fn())
         dr.sync_thread()
+    clock = clock or time.perf_counter
     for _ in range(repeat):
         for name, fn in kernels.items():
-            t = time.perf_counter()
+            t = clock()
             dr.eval(fn())
             dr.sync_thread()
-            times[name].append(time.perf_counter() - t)
+            times[name].append(clock() - t)
     med = {k: float(np.median(v)) for k, v in times.items()}
     per_op = {}
     for name, t in med.items():
         if name.startswith("none"):
             continue
-        base = med["none (lookup)" if name.startswith("lookup") else "none (arithmetic)"]
+        base = med["none (arithmetic)" if not name.startswith("lookup") else
+                   "none (lookup, 4 outputs)" if name.endswith("4 outputs") else
+                   "none (lookup)"]
         per_op[name] = max(t - base, 0.0) / COUNT
     fma = per_op["fma"]
     return [{"operation": k, "ms": 1e3 * v, "cost_vs_fma": v / fma if fma > 0 else None}
@@ -104,9 +129,14 @@ def measure(n: int, repeat: int) -> list[dict]:
 
 
 def main() -> None:
-    args = arg_parser(__doc__).parse_args()
+    ap = arg_parser(__doc__)
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="processor time of one Dr.Jit thread instead of wall time")
+    args = ap.parse_args()
     n, repeat = (1 << 12, 2) if args.quick else (1 << 21, 15)
-    rows = measure(n, repeat)
+    if args.cpu_time:
+        dr.set_thread_count(1)
+    rows = measure(n, repeat, time.process_time if args.cpu_time else None)
     print(f"per operation over {n} lanes (lookups: per wavelength of a spectral lane)")
     print_table(rows, [("operation", "operation", "s"), ("ms", "ms per op", ".3f"),
                        ("cost_vs_fma", "cost / fma", ".1f")])

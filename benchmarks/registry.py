@@ -198,6 +198,12 @@ BENCHMARKS: tuple[Benchmark, ...] = (
             ("cost_vs_diffuse", "cost / diffuse", ".2f")])}),
     Benchmark("bench_mie_update.py", "mie_update", ("update+AD ms", "Fresnel ms"), {
         "mie_update": _mie_update, "construction": _construction}),
+    Benchmark("bench_mie_table.py", "mie_table", ("max rel. error", "at nm"), {
+        "mie_table": _rows([
+            ("material", "material", "s"), ("radius_um", "radius (um)", "g"),
+            ("max_rel_error", "largest relative error of rho", ".1e"),
+            ("at_nm", "at (nm)", ".2f"),
+            ("poly_max_rel_error", "degree-32 polynomial", ".1e")])}),
     Benchmark("bench_fit.py", "fit", ("s (first)", "loss/best", "agreeing"), {
         "fit": _fit,
         "fit_ptfe": _meta("ptfe", [

@@ -246,6 +246,7 @@ public:
     using Sampling = PowderSampling<Float, Spectrum>;
     using Tables = PowderTables<Float, Spectrum>;
     using FloatStorage = typename Tables::FloatStorage;
+    using UInt64Storage = typename Tables::UInt64Storage;
     using SpecularModel = typename Params::SpecularModel;
     using LobeWeights = typename Sampling::LobeWeights;
     using Lobes = powder_param::Lobes;
@@ -640,8 +641,10 @@ private:
         } else if constexpr (is_spectral_v<Spectrum>) {
             m_volume_path = volume_table(x0);
         }
-        if (!tabulated(m_volume_path))
-            m_volume_table = FloatStorage(); // no stale table (nor its AD graph) kept
+        if (!tabulated(m_volume_path)) { // no stale table (nor its AD graph) kept
+            m_volume_table = FloatStorage();
+            m_volume_pairs = UInt64Storage();
+        }
         m_coherent_form = powder::coherent_form(x0, thick(m_volume_path));
     }
 
@@ -664,7 +667,7 @@ private:
                      tau = p.tau_given ? Volume::broadcast(p.tau_o, Tables::TableSize)
                                        : m_grains.tau_table;
         return Volume::build_table(rho, p.albedo ? &rho_value : nullptr, tau, p.g, m_volume,
-                                   m_volume_table, x0);
+                                   m_volume_table, m_volume_pairs, x0);
     }
 
     /// The volume constants at an interaction (VolumePath)
@@ -673,8 +676,8 @@ private:
             return m_volume;
         if constexpr (is_spectral_v<Spectrum>)
             if (tabulated(m_volume_path))
-                return Volume::lookup(m_volume_table, m_volume_path, m_volume, m_params.g, si,
-                                      active);
+                return Volume::lookup(m_volume_table, m_volume_pairs, m_volume_path, m_volume,
+                                      m_params.g, si, active);
         Float g = m_params.at(powder_param::G, si, active);
         if constexpr (is_spectral_v<Spectrum>) {
             if (!m_params.albedo && !m_params.tau_given &&
@@ -738,8 +741,10 @@ private:
                     m_params.at(powder_param::Thickness, si, active), mu_i, mu_o);
             ladder += k.rho * factor;
         }
-        if (lobes.multiple) // L2
-            ladder += powder::multiple_scattering(k.rho2_3, k.s_c0, k.c0, h, mu_i, mu_o);
+        if (lobes.multiple) // L2 (optically thick: s(c0) = 1 / (2 c0), one division)
+            ladder += thick(m_volume_path)
+                          ? powder::multiple_scattering_thick(k.rho2_3, k.c0, h, mu_i, mu_o)
+                          : powder::multiple_scattering(k.rho2_3, k.s_c0, k.c0, h, mu_i, mu_o);
         if (lobes.coherent) // C
             coherent = powder::coherent(k.rho2_3, k.c0_sq, k.tau, k0_kappa, wi, wo, mu_i, mu_o,
                                         h, m_coherent_form);
@@ -825,9 +830,11 @@ private:
     powder::CoherentForm m_coherent_form = powder::CoherentForm::WithSeries;
     VolumeConstants m_volume;      ///< the constants eval does not read from a table
     FloatStorage m_volume_table;   ///< spectral: records of the volume constants
+    UInt64Storage m_volume_pairs;  ///< JIT spectral, records of rho alone: packed_pairs
     FloatStorage m_norm_records;   ///< energy = "conserving": N (powder_energy.h)
 
     MI_TRAVERSE_CB(Base, m_params, m_grains, m_sampling, m_k0_kappa, m_volume, m_volume_table,
+                   m_volume_pairs,
                    m_norm_records)
 };
 

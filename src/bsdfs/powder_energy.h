@@ -225,16 +225,19 @@ template <typename Float, typename Spectrum> struct PowderEnergy {
                                       const UnpolarizedSpectrum &lam, Mask active) {
         Float t = dr::clip((dr::sqrt(mu_i) - NormS0) * ((NormMu - 1) / (1.f - NormS0)), 0.f,
                            (ScalarFloat) NormMu - 1.001f);
-        UInt32 k0 = UInt32(t);
-        Float w = t - Float(k0);
+        // t >= 0: the signed conversions truncate to floor(t) (Tables::table_interval)
+        Int32 k0_ = Int32(t);
+        UInt32 k0 = UInt32(k0_);
+        Float w = t - Float(k0_);
         UnpolarizedSpectrum out(0.f);
         using Packet = dr::Array<Float, NormPacket>;
         if constexpr (is_spectral_v<Spectrum>) {
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
                 Float s = dr::clip((lam[c] * 1e3f - Tables::TableMin) * (1.f / NormStep), 0.f,
                                    (ScalarFloat) NormWavelengths - 1.001f);
-                UInt32 j0 = UInt32(s);
-                Float v = s - Float(j0);
+                Int32 j0_ = Int32(s);
+                UInt32 j0 = UInt32(j0_);
+                Float v = s - Float(j0_);
                 Packet e = dr::gather<Packet>(records, j0 * NormMu + k0, active);
                 out[c] = dr::lerp(dr::lerp(e[0], e[1], w), dr::lerp(e[2], e[3], w), v);
             }

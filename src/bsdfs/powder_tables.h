@@ -18,6 +18,7 @@
 #include <nanothread/nanothread.h>
 
 #include <complex>
+#include <tuple>
 #include <vector>
 
 #include "powder_fresnel.h"
@@ -47,6 +48,7 @@ template <typename Float, typename Spectrum> struct PowderTables {
     MI_IMPORT_TYPES()
     using FloatStorage = DynamicBuffer<Float>;
     using UInt32Storage = DynamicBuffer<UInt32>;
+    using UInt64Storage = DynamicBuffer<UInt64>;
     /// the spectral grid (powder_registry.h)
     static constexpr int TableSize = powder_param::TableSize;
     static constexpr float TableMin = powder_param::TableMin, TableStep = powder_param::TableStep;
@@ -100,14 +102,19 @@ template <typename Float, typename Spectrum> struct PowderTables {
         return v;
     }
 
-    /// Spectral variants: each channel's position in the 1 nm grid (entry floor(t),
-    /// weight t - floor(t) of the next), clamped inside the table
-    static UnpolarizedSpectrum table_position(const SurfaceInteraction3f &si) {
+    /// Spectral variants: the interval of the 1 nm grid that holds the wavelength of
+    /// channel c: its first node i0 and the weight w of the next, the position t clamped
+    /// inside the table (other variants: the first node). t >= 0, so its conversion to a
+    /// signed integer truncates to floor(t): one instruction each way, where the unsigned
+    /// conversions are sequences of instructions on CPUs without AVX-512
+    /// (docs/benchmarks.md)
+    static std::pair<UInt32, Float> table_interval(const SurfaceInteraction3f &si, size_t c) {
+        Float t(0.f);
         if constexpr (is_spectral_v<Spectrum>)
-            return dr::clip((si.wavelengths - TableMin) * (1.f / TableStep), 0.f,
-                            (float) (TableSize - 1) - 1e-3f);
-        else
-            return UnpolarizedSpectrum(0.f);
+            t = dr::clip((si.wavelengths[c] - TableMin) * (1.f / TableStep), 0.f,
+                         (float) (TableSize - 1) - 1e-3f);
+        Int32 i0 = Int32(t);
+        return { UInt32(i0), t - Float(i0) };
     }
 
     /// Spectral variants: the quantities of interval records of P entries (P / 2
@@ -116,12 +123,48 @@ template <typename Float, typename Spectrum> struct PowderTables {
     template <size_t P, typename Assign>
     static void read_records(const FloatStorage &records, const SurfaceInteraction3f &si,
                              Mask active, Assign &&assign) {
-        UnpolarizedSpectrum t = table_position(si);
         for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
-            UInt32 i0 = UInt32(dr::floor(t[c]));
+            UInt32 i0;
+            Float w;
+            std::tie(i0, w) = table_interval(si, c);
             auto v = dr::gather<dr::Array<Float, P>>(records, i0, active);
-            Float w = t[c] - Float(i0);
             assign(c, [&](size_t q) { return dr::lerp(v[2 * q], v[2 * q + 1], w); });
+        }
+    }
+
+    /// JIT variants: interval records of one quantity (2 entries each) packed into one
+    /// 64-bit word per record (the first entry in the low half), detached, for read_pairs;
+    /// other variants: empty
+    static UInt64Storage packed_pairs(const FloatStorage &records) {
+        UInt64Storage out;
+        if constexpr (dr::is_jit_v<Float>) {
+            UInt32Storage i = dr::arange<UInt32Storage>((uint32_t) dr::width(records) / 2u);
+            FloatStorage r = dr::detach(records);
+            auto half = [&](const UInt32Storage &k) {
+                return UInt64Storage(
+                    dr::reinterpret_array<UInt32Storage>(dr::gather<FloatStorage>(r, k)));
+            };
+            out = half(2u * i) | dr::sl<32>(half(2u * i + 1u));
+            dr::make_opaque(out);
+        }
+        return out;
+    }
+
+    /// JIT variants: read_records<2> from the packed_pairs of the records: the quantity
+    /// at each channel wavelength, the same values, from one 64-bit gather per channel.
+    /// On the AMD EPYC (AVX2) of docs/benchmarks.md a 64-bit gather costs less than the
+    /// packet gather of 2 floats (per lane a load of 8 bytes and a transposition);
+    /// detached, so that eval reads the float records where gradients flow through them
+    template <typename Assign>
+    static void read_pairs(const UInt64Storage &pairs, const SurfaceInteraction3f &si,
+                           Mask active, Assign &&assign) {
+        for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
+            UInt32 i0;
+            Float w;
+            std::tie(i0, w) = table_interval(si, c);
+            UInt64 v = dr::gather<UInt64>(pairs, i0, active);
+            assign(c, dr::lerp(dr::reinterpret_array<Float>(UInt32(v)),
+                               dr::reinterpret_array<Float>(UInt32(dr::sr<32>(v))), w));
         }
     }
 
@@ -131,10 +174,10 @@ template <typename Float, typename Spectrum> struct PowderTables {
                                       Mask active) {
         UnpolarizedSpectrum out(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            UnpolarizedSpectrum t = table_position(si);
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
-                UInt32 i0 = UInt32(dr::floor(t[c]));
-                Float w = t[c] - Float(i0);
+                UInt32 i0;
+                Float w;
+                std::tie(i0, w) = table_interval(si, c);
                 out[c] = dr::lerp(dr::gather<Float>(table, i0, active),
                                   dr::gather<Float>(table, i0 + 1u, active), w);
             }
@@ -287,10 +330,10 @@ template <typename Float, typename Spectrum> struct PowderTables {
         };
         UnpolarizedSpectrum qe, qs;
         if constexpr (is_spectral_v<Spectrum>) {
-            UnpolarizedSpectrum pos = table_position(si);
             for (size_t c = 0; c < dr::size_v<UnpolarizedSpectrum>; ++c) {
-                UInt32 i0 = UInt32(dr::floor(pos[c]));
-                Float w = pos[c] - Float(i0);
+                UInt32 i0;
+                Float w;
+                std::tie(i0, w) = table_interval(si, c);
                 auto [e0, s0] = hermite(i0);
                 auto [e1, s1] = hermite(i0 + 1u);
                 qe[c] = dr::lerp(e0, e1, w);

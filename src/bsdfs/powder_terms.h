@@ -66,6 +66,16 @@ Spectrum multiple_scattering(const Spectrum &rho2_3, const Spectrum &s_c0, const
     return rho2_3 * (s_c0 + h) / ((1.f + c0 * mu_i) * (1.f + c0 * mu_o));
 }
 
+/// L2 of an optically thick layer, where s(c0) = 1 / (2 c0) (powder_volume.h, ThickLimit):
+/// 3 rho^2 (1 + 2 c0 h) / (2 c0 (1 + c0 mu_i) (1 + c0 mu_o)), one division where
+/// multiple_scattering with s(c0) = 1 / (2 c0) takes two (c0 > 0 there)
+template <typename Spectrum, typename Float>
+Spectrum multiple_scattering_thick(const Spectrum &rho2_3, const Spectrum &c0, const Float &h,
+                                   const Float &mu_i, const Float &mu_o) {
+    return rho2_3 * dr::fmadd(c0, 2.f * h, 1.f) /
+           ((2.f * c0) * ((1.f + c0 * mu_i) * (1.f + c0 * mu_o)));
+}
+
 /// How C evaluates (1 - exp(-x)) / x, x = 2 c tau_o >= x0 = 2 c0 tau_o (coherent_form)
 enum class CoherentForm {
     Saturated,  ///< 1 - exp(-x) == 1 in single precision for every x (or optically thick)

@@ -60,6 +60,7 @@ template <typename Float, typename Spectrum> struct PowderVolume {
     MI_IMPORT_TYPES()
     using Tables = PowderTables<Float, Spectrum>;
     using FloatStorage = typename Tables::FloatStorage;
+    using UInt64Storage = typename Tables::UInt64Storage;
 
     /// Per-channel values of the volume terms that depend on the grains only
     struct Constants {
@@ -132,8 +133,9 @@ template <typename Float, typename Spectrum> struct PowderVolume {
     /// Spectral variants: the volume constants per channel from the table of `path` (one
     /// packet gather per channel; linear in wavelength on the 1 nm grid); `uniform` holds
     /// what the table does not (rho and c0 of a one-number albedo, tau_o when thick)
-    static Constants lookup(const FloatStorage &table, VolumePath path, const Constants &uniform,
-                            const Float &g, const SurfaceInteraction3f &si, Mask active) {
+    static Constants lookup(const FloatStorage &table, const UInt64Storage &pairs,
+                            VolumePath path, const Constants &uniform, const Float &g,
+                            const SurfaceInteraction3f &si, Mask active) {
         Constants k;
         if (path == VolumePath::TableSTau) {
             Tables::template read_records<4>(table, si, active, [&](size_t c, auto value) {
@@ -146,7 +148,11 @@ template <typename Float, typename Spectrum> struct PowderVolume {
             k.c0 = uniform.c0;
         } else {
             UnpolarizedSpectrum rho, s_c0, tau;
-            if (path == VolumePath::TableRho)
+            if (path == VolumePath::TableRho && dr::width(pairs) != 0 &&
+                !dr::grad_enabled(table)) // (packed_pairs: the same values)
+                Tables::read_pairs(pairs, si, active,
+                                   [&](size_t c, const Float &value) { rho[c] = value; });
+            else if (path == VolumePath::TableRho)
                 Tables::template read_records<2>(table, si, active,
                                                  [&](size_t c, auto value) { rho[c] = value(0); });
             else // records of (rho, s(c0), tau_o, padding)
@@ -185,7 +191,7 @@ template <typename Float, typename Spectrum> struct PowderVolume {
      */
     static VolumePath build_table(const FloatStorage &rho, const Float *rho_given,
                                   const FloatStorage &tau, const Float &g, Constants &uniform,
-                                  FloatStorage &table, double &x0) {
+                                  FloatStorage &table, UInt64Storage &pairs, double &x0) {
         const uint32_t n = (uint32_t) dr::width(tau);
         FloatStorage gs = broadcast(g, n), c0_sq = powder::c0_squared(rho, gs),
                      s_c0 = powder::s_func(dr::sqrt(c0_sq), tau);
@@ -211,6 +217,8 @@ template <typename Float, typename Spectrum> struct PowderVolume {
         else // (padding to a packet of 8)
             quantities = { &rho, &s_c0, &tau, &tau };
         table = Tables::interval_records(quantities, n);
+        // rho alone: also as 64-bit words, one hardware gather per channel (read_pairs)
+        pairs = path == VolumePath::TableRho ? Tables::packed_pairs(table) : UInt64Storage();
         x0 = 2.0 * std::sqrt(std::max(min_of(c0_sq), 0.0)) * min_of(tau);
         return path;
     }

@@ -85,7 +85,7 @@ def test_ab_compares_the_baseline_build_it_is_given(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     data = json.loads((out / "ab.json").read_text())
     assert data["meta"]["baseline"] == str(copy)
-    assert len(data["rows"]) == 14
+    assert len(data["rows"]) == 2 * len(_load_script("bench_ab").CONFIGS)  # RGB, spectral
     assert all(r["max_rel_difference"] == 0.0 for r in data["rows"])
     broken = tmp_path / "broken" / "powder.so"
     broken.parent.mkdir()
