@@ -40,6 +40,13 @@ def arithmetic(op: Callable[[Float, Float], Float], a: Float, b: Float) -> Float
     return total
 
 
+def _node(lam: Float, i: int) -> tuple[Float, UInt32, Float]:
+    """Round ``i``'s grid position ``t`` of a wavelength, its node and the weight of the next."""
+    t = dr.clip(lam + 0.25 * i, 0.0, RECORDS - 2.001)
+    i0 = UInt32(dr.floor(t))
+    return t, i0, t - Float(i0)
+
+
 def lookups(size: int, lam: list[Float], table: Float) -> Float:
     """COUNT // 4 rounds of 4 per-wavelength lookups of records of ``size`` floats (pairs of
     nodes, interpolated linearly); size 0: the same index arithmetic without a gather;
@@ -47,9 +54,7 @@ def lookups(size: int, lam: list[Float], table: Float) -> Float:
     total = Float(0)
     for i in range(COUNT // 4):
         for c in range(4):
-            t = dr.clip(lam[c] + 0.25 * i, 0.0, RECORDS - 2.001)
-            i0 = UInt32(dr.floor(t))
-            w = t - Float(i0)
+            t, i0, w = _node(lam[c], i)
             if size == 0:
                 total += dr.lerp(t, 2.0 * t, w)
             elif size == 1:
@@ -68,9 +73,7 @@ def lookups_per_channel(size: int, lam: list[Float], table: Float) -> list[Float
     totals = [Float(0) for _ in range(4)]
     for i in range(COUNT // 4):
         for c in range(4):
-            t = dr.clip(lam[c] + 0.25 * i, 0.0, RECORDS - 2.001)
-            i0 = UInt32(dr.floor(t))
-            w = t - Float(i0)
+            t, i0, w = _node(lam[c], i)
             if size == 0:
                 totals[c] += dr.lerp(t, 2.0 * t, w)
             else:

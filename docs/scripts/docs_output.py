@@ -45,3 +45,15 @@ def output_dir(args: argparse.Namespace, committed: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     print(f"writing to {out}" + (" (the committed docs)" if args.refresh_docs else ""))
     return out
+
+
+def render_size(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[int, int]:
+    """(width, height) in pixels from ``--res WIDTHxHEIGHT``, checked with ``--spp`` (both
+    positive); a bad value is the parser's error naming the option."""
+    try:
+        width, height = (int(v) for v in args.res.split("x"))
+    except ValueError:
+        parser.error(f"--res {args.res!r}: expected WIDTHxHEIGHT in pixels, e.g. 720x270")
+    if width < 1 or height < 1 or args.spp < 1:
+        parser.error(f"--res {args.res} and --spp {args.spp} must be positive")
+    return width, height

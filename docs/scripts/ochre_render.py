@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from docs_output import add_output_options, output_dir
+from docs_output import add_output_options, output_dir, render_size
 from ochre_series import BRDF, HEMATITE_RADII, MASS
 
 from mitsuba_powder.plugin.grains import mixture_properties
@@ -93,12 +93,7 @@ def main() -> None:
     parser.add_argument("--res", default="720x270", help="WIDTHxHEIGHT")
     add_output_options(parser, ROOT / "docs" / "figures", "ochre_render.png and .json")
     args = parser.parse_args()
-    try:
-        width, height = (int(v) for v in args.res.split("x"))
-    except ValueError:
-        parser.error(f"--res {args.res!r}: expected WIDTHxHEIGHT in pixels, e.g. 720x270")
-    if width < 1 or height < 1 or args.spp < 1:
-        parser.error(f"--res {args.res} and --spp {args.spp} must be positive")
+    width, height = render_size(parser, args)
     out = output_dir(args, ROOT / "docs" / "figures")
     import matplotlib
 

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from docs_output import add_output_options, output_dir
+from docs_output import add_output_options, output_dir, render_size
 
 from mitsuba_powder.rendering.render import render_scene
 
@@ -66,12 +66,7 @@ def main() -> None:
     parser.add_argument("-D", dest="defines", action="append", default=[],
                         metavar="NAME=VALUE", help="a scene parameter of both scenes")
     args = parser.parse_args()
-    try:
-        width, height = (int(v) for v in args.res.split("x"))
-    except ValueError:
-        parser.error(f"--res {args.res!r}: expected WIDTHxHEIGHT in pixels, e.g. 960x300")
-    if width < 1 or height < 1 or args.spp < 1:
-        parser.error(f"--res {args.res} and --spp {args.spp} must be positive")
+    width, height = render_size(parser, args)
     defines = {"res_x": str(width), "res_y": str(height)}
     for item in args.defines:
         name, sep, value = item.partition("=")
