@@ -226,6 +226,24 @@ def _read_swatches(args, wl) -> tuple:
     return ends, tints
 
 
+def _print_unmix_rows(results: list) -> None:
+    """The table of ``unmix --baseline``: per method and material the mass and volume
+    fractions with their 1-sigma, then the method's RMS, chi2 and warnings."""
+    print(f"{'method':>21s} {'material':>12s} {'mass':>8s} {'+/-':>7s} {'volume':>8s} "
+          f"{'+/-':>7s}")
+    show = lambda v, j, f: "-" if v is None else format(v[j], f)  # noqa: E731
+    for u in results:
+        for j, m in enumerate(u.materials):
+            print(f"{u.method:>21s} {m:>12s} {show(u.mass_fractions, j, '8.4f')} "
+                  f"{show(u.mass_fraction_errors, j, '7.4f')} "
+                  f"{show(u.volume_fractions, j, '8.4f')} "
+                  f"{show(u.volume_fraction_errors, j, '7.4f')}")
+        print(f"{u.method:>21s} RMS reflectance {u.rms:.5f}, chi2 {u.chi2:.4g} for {u.dof} "
+              "degrees of freedom")
+        for w in u.warnings:
+            print(f"warning ({u.method}): {w}")
+
+
 def _cmd_unmix_reflectance(args: argparse.Namespace) -> int:
     """``unmix --baseline``: a reflectance spectrum unmixed by Hapke's rule, Kubelka-Munk or
     both beside the powder model, a row per method."""
@@ -263,19 +281,7 @@ def _cmd_unmix_reflectance(args: argparse.Namespace) -> int:
     results = [run() for run in runs]
     print(f"unmixing the reflectance {args.albedo}: {len(wl)} wavelengths, geometry "
           f"{args.geometry}")
-    print(f"{'method':>21s} {'material':>12s} {'mass':>8s} {'+/-':>7s} {'volume':>8s} "
-          f"{'+/-':>7s}")
-    show = lambda v, j, f: "-" if v is None else format(v[j], f)  # noqa: E731
-    for u in results:
-        for j, m in enumerate(u.materials):
-            print(f"{u.method:>21s} {m:>12s} {show(u.mass_fractions, j, '8.4f')} "
-                  f"{show(u.mass_fraction_errors, j, '7.4f')} "
-                  f"{show(u.volume_fractions, j, '8.4f')} "
-                  f"{show(u.volume_fraction_errors, j, '7.4f')}")
-        print(f"{u.method:>21s} RMS reflectance {u.rms:.5f}, chi2 {u.chi2:.4g} for {u.dof} "
-              "degrees of freedom")
-        for w in u.warnings:
-            print(f"warning ({u.method}): {w}")
+    _print_unmix_rows(results)
     if out is not None:
         as_list = lambda v: None if v is None else v.tolist()  # noqa: E731
         doc = [{"method": u.method, "materials": u.materials,

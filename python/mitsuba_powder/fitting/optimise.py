@@ -444,6 +444,30 @@ def _nlopt_optimiser(nlopt, method: str, p: int, problem: BatchProblem):
     return opt
 
 
+def _recording_objective(problem: BatchProblem, points: list[np.ndarray], costs: list[float]
+                         ) -> Callable[[np.ndarray, np.ndarray], float]:
+    """nlopt's objective ``(y, grad) -> cost`` of ``problem`` (the sum of squared residuals,
+    its gradient filled when nlopt asks), appending each point and its cost to ``points`` and
+    ``costs``; a non-finite cost (outside the model's domain) is 1e300, never a NaN."""
+    def objective(y: np.ndarray, grad: np.ndarray) -> float:
+        if grad.size:
+            r, jac = problem.jacobian(y[None])
+            r = r[0]
+            grad[:] = 2.0 * (jac[0].T @ r)
+        else:
+            r = problem.residuals(y[None])[0]
+        c = float(r @ r)
+        if not math.isfinite(c):
+            c = 1e300  # outside the model's domain: the worst cost, never a NaN to nlopt
+            if grad.size:
+                grad[:] = 0.0
+        points.append(np.array(y, dtype=np.float64))
+        costs.append(c)
+        return c
+
+    return objective
+
+
 def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed: int,
                  start: np.ndarray | None = None, polish_count: int = 4,
                  max_iterations: int = 60, max_polish_evaluations: int = 200,
@@ -468,23 +492,7 @@ def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed:
     t0 = time.perf_counter()
     points: list[np.ndarray] = []
     costs: list[float] = []
-
-    def objective(y: np.ndarray, grad: np.ndarray) -> float:
-        if grad.size:
-            r, jac = problem.jacobian(y[None])
-            r = r[0]
-            grad[:] = 2.0 * (jac[0].T @ r)
-        else:
-            r = problem.residuals(y[None])[0]
-        c = float(r @ r)
-        if not math.isfinite(c):
-            c = 1e300  # outside the model's domain: the worst cost, never a NaN to nlopt
-            if grad.size:
-                grad[:] = 0.0
-        points.append(np.array(y, dtype=np.float64))
-        costs.append(c)
-        return c
-
+    objective = _recording_objective(problem, points, costs)
     opt = _nlopt_optimiser(nlopt, method, len(problem.lower), problem)
     opt.set_min_objective(objective)
     opt.set_maxeval(int(max_evaluations))

@@ -247,6 +247,23 @@ def _mass_fractions(materials: list[str], f: np.ndarray) -> np.ndarray | None:
     return w / w.sum()
 
 
+def _propagate(model: _Mixture, z: np.ndarray, cov_z: np.ndarray, n: int, free_radii: bool
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The volume fractions of the variables ``z`` (log amounts, then log radii), their
+    1-sigma and covariance propagated from ``cov_z``, the radii (um) and their 1-sigma (0
+    where held)."""
+    a = np.exp(z[:n - 1])
+    f, g = _fractions(a)
+    ga = g * a[None, :]  # d f / d z
+    cov_f = ga @ cov_z[:n - 1, :n - 1] @ ga.T
+    f_err = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
+    radii = model.radii(z)
+    r_err = np.zeros(n)
+    if free_radii:
+        r_err = radii * np.sqrt(np.maximum(np.diag(cov_z)[n - 1:], 0.0))
+    return f, f_err, cov_f, radii, r_err
+
+
 def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
           free_radii: bool = False, by: str = "volume", global_stage: str = "sobol",
           starts: int = DEFAULT_STARTS, seed: int = 0, max_evaluations: int | None = None
@@ -302,15 +319,7 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     res = (values - rho) / sig
     warnings: list[str] = []
     cov_z = _covariance(jac / sig[:, None], warnings)
-    a = np.exp(z[:n - 1])
-    f, g = _fractions(a)
-    ga = g * a[None, :]  # d f / d z
-    cov_f = ga @ cov_z[:n - 1, :n - 1] @ ga.T
-    f_err = np.sqrt(np.maximum(np.diag(cov_f), 0.0))
-    radii = model.radii(z)
-    r_err = np.zeros(n)
-    if free_radii:
-        r_err = radii * np.sqrt(np.maximum(np.diag(cov_z)[n - 1:], 0.0))
+    f, f_err, cov_f, radii, r_err = _propagate(model, z, cov_z, n, free_radii)
     materials = [m for m, _, _ in parts]
     warnings += _undetermined(materials, f, f_err, cov_z, free_radii)
     if len(search.start_costs) > 1 and search.agreeing < 2:
