@@ -403,10 +403,10 @@ def _add_shadow_options(p: argparse.ArgumentParser, who: str = "") -> None:
     p.add_argument("--shadows", default=None, metavar="{auto,relief,ratio}",
                    help=f"{who}auto (default): integrate the relief from the fitted normals "
                         "and keep its cast shadows where they relight held-out lights better "
-                        "(by more than 2 standard errors, cross-validated over folds of the "
-                        "lights on a subsample of pixels; the choice in fit.json); relief: "
-                        "always (every pixel fitted again "
-                        "under each light's visibility over the relief); ratio: no relief in "
+                        "(cross-validated over folds of the lights on a subsample of pixels, "
+                        "on the pixels it shades; the choice in fit.json); relief: always "
+                        "(the pixels it shades fitted again under each light's visibility "
+                        "over the relief); ratio: no relief in "
                         "the fit, observations far below the model flagged only (tiled fits: "
                         "always ratio)")
     if not who:

@@ -209,8 +209,9 @@ def _shadows_summary(settings: dict) -> str:
         cv = choice["cv_rms"]
         line += (f", chosen by cross-validation over held-out lights: RMS {cv['ratio']:.4g} "
                  f"without the relief, {cv['relief']:.4g} with it, better with it by "
-                 f"{choice['z']:.3g} standard errors (the relief needs more than "
-                 f"{choice['margin_z']:g})")
+                 f"{choice['z']:.3g} standard errors on the "
+                 f"{choice.get('shaded_pixels', choice['pixels'])} pixels it shades (the "
+                 f"relief needs more than {choice['margin_z']:g})")
     return line
 
 

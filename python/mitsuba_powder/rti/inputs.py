@@ -74,7 +74,7 @@ class FitInputs:
             p = int(np.count_nonzero(sel))
             dirs = field[0] if field is not None else np.ascontiguousarray(
                 np.broadcast_to(self.d.astype(np.float32), (p,) + self.d.shape))
-            vis = self.relief.visibility(dirs if field is not None else self.d, sel)
+            vis = self.relief.visibility(self.d if field is None else field[0], sel)
             # lights less than half visible are left out (their factor only needs to be > 0)
             lit = np.maximum(vis, 0.5).astype(np.float64)
             s = lit if field is None else field[1] * lit
@@ -83,6 +83,22 @@ class FitInputs:
                        fixed_maps={n: v[sel] for n, v in self.maps.items()},
                        fixed_albedo=fixed_albedo, grain=self.grain, options=options,
                        field=field, light_distance=light_distance, shadowed=shadowed)
+
+    def shaded(self, relief: Relief, sel: np.ndarray, light_distance: float | np.ndarray,
+               rows: int = 64) -> np.ndarray:
+        """bool (H, W): the pixels of ``sel`` that ``relief`` shades under at least one of the
+        capture's lights (visibility < 1), the lights at ``light_distance``; computed ``rows``
+        image rows at a time (the visibilities of a few rows in memory)."""
+        out = np.zeros(self.shape, dtype=bool)
+        for r0 in range(0, self.shape[0], max(1, int(rows))):
+            part = np.zeros(self.shape, dtype=bool)
+            part[r0:r0 + rows] = sel[r0:r0 + rows]
+            if not part.any():
+                continue
+            field = pixel_light_field(self.d, light_distance, self.shape, part)
+            vis = relief.visibility(self.d if field is None else field[0], part)
+            out[part] = np.any(vis < 1.0, axis=1)
+        return out
 
 
 @dataclass(eq=False)

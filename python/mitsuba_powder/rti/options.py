@@ -92,12 +92,13 @@ class FitOptions:
         shadows: ``auto`` (default): after the per-pixel fit the relief is integrated from
             its normals and kept where it relights held-out lights better: the held-out-light
             RMS with and without the relief's visibility, cross-validated over folds of the
-            lights on a subsample of pixels, the relief kept when it lowers the pixels'
-            held-out squared residuals by more than
+            lights on a subsample of pixels, the relief kept when it lowers the held-out
+            squared residuals of the pixels it shades by more than
             :data:`~mitsuba_powder.rti.selection.SHADOW_Z` standard errors
             (:func:`~mitsuba_powder.rti.selection.choose_shadows`), then as ``relief``,
-            else as ``ratio``. ``relief``: the relief always (every pixel fitted again with
-            each light's visibility over it: observations below the horizon left out, the
+            else as ``ratio``. ``relief``: the relief always (the pixels it shades fitted
+            again with each light's visibility over it: observations below the horizon
+            left out, the
             soft edge in the model; then the ratio test). ``ratio``: the ratio test only,
             no relief in the fit.
         light_size: the lights' angular radius, degrees in [0, 45]: the soft edge of cast

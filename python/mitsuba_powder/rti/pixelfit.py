@@ -80,14 +80,16 @@ class Log:
 # ---------------------------------------------------------------------------
 
 def fit_in_blocks(inputs: FitInputs, pixels: np.ndarray, options: FitOptions,
-                  gains: np.ndarray, light_distance: float | np.ndarray, log: Log
-                  ) -> MapsResult:
+                  gains: np.ndarray, light_distance: float | np.ndarray, log: Log,
+                  start_pixels: np.ndarray | None = None) -> MapsResult:
     """The maps of the pixels ``pixels`` (bool (H, W)) under ``gains`` and lights at
     ``light_distance``, fitted with ``options``: in blocks within the memory budget (one
     while the gains are fitted: they couple every pixel), each from the same start (the held
-    properties at their medians over ``pixels`` in the albedo table), put together."""
+    properties at their medians over ``start_pixels``, default ``pixels``, in the albedo
+    table), put together."""
     blocks = pixel_blocks(pixels, len(inputs.d), options.memory_gb, options.gains.fitted)
-    medians = {n: float(np.median(m[pixels])) for n, m in inputs.maps.items()}
+    at = pixels if start_pixels is None else start_pixels
+    medians = {n: float(np.median(m[at])) for n, m in inputs.maps.items()}
     result, ev = None, None
     for i, block in enumerate(blocks):
         if len(blocks) > 1:

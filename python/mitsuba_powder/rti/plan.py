@@ -25,9 +25,10 @@ for, in order; :func:`run_plan` runs them, each handing the next what it found
    normals and its horizon map (:mod:`mitsuba_powder.rti.relief`), and whether its cast
    shadows relight held-out lights better, cross-validated over folds of the lights on a
    subsample of pixels (:func:`~mitsuba_powder.rti.selection.choose_shadows`);
-7. ``relief`` (``shadows="relief"``, or ``auto`` where the choice kept the relief): every
-   masked pixel fitted again with each light's visibility over that relief (the lights
-   below a pixel's horizon left out, the soft edge in the model), and the relief of these
+7. ``relief`` (``shadows="relief"``, or ``auto`` where the choice kept the relief): the
+   masked pixels that relief shades under some light (every masked pixel while the gains
+   are fitted) fitted again with each light's visibility over it (the lights below a pixel's
+   horizon left out, the soft edge in the model), and the relief of these
    normals kept with the maps; where ``auto`` chose ``ratio``, the blocks' maps are kept
    with their relief, unused.
 
@@ -48,7 +49,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..variants import use_variant
-from .blocks import peak_memory_mib
+from .blocks import merge_block, peak_memory_mib
 from .distance import (
     polish_bracket,
     polish_inverse_distance,
@@ -363,7 +364,8 @@ def _relief_of(first: MapsResult, inputs: FitInputs, log: Log) -> Relief:
 def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
                     ) -> FitState:
     """Stage ``relief``: the relief of the maps so far (the ``shadows choice``'s, if made),
-    every pixel of the stage fitted again under its visibility, and the relief of the new
+    the pixels it shades fitted again under its visibility (:func:`_refit_shaded`; every
+    pixel of the stage while the gains are fitted), and the relief of the new
     normals kept with them; where the choice was ``ratio``, the maps so far with their
     relief."""
     first = state.result
@@ -378,17 +380,42 @@ def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
     seconds = time.perf_counter() - t0 + (state.shadows_choice or {}).get("relief_seconds", 0)
     shadowed = relief.visibility(inputs.d, first.mask) < 0.5 if np.all(
         np.isinf(state.light_distance)) else None
-    log("relief: " + ("" if shadowed is None else f"{int(shadowed.sum())} observations below "
-                      "the horizon; ") + "every pixel fitted again under its lights' "
-        "visibility")
-    result = fit_in_blocks(replace(inputs, relief=relief), stage.pixels, state.options,
-                           state.gains, state.light_distance, log)
+    result = _refit_shaded(replace(inputs, relief=relief), stage, state, log,
+                           "" if shadowed is None else
+                           f"{int(shadowed.sum())} observations below the horizon; ")
     t1 = time.perf_counter()
     result.relief = make_relief(result.normals, result.residual_rms, result.mask,
                                 inputs.options.light_size)
     result.fit_settings.update(relief_seconds=seconds + time.perf_counter() - t1,
                                shadows="relief", light_size=inputs.options.light_size)
     return replace(state, result=result)
+
+
+def _refit_shaded(inputs: FitInputs, stage: Stage, state: FitState, log: Log, said: str
+                  ) -> MapsResult:
+    """The stage's pixels fitted under the visibility of ``inputs.relief``. With the gains
+    held, only the pixels it shades under some light (visibility < 1) are fitted again: the
+    others see the same data as in the maps so far (visibility 1 scales nothing, no light is
+    left out), and every pixel's fit is its own from the same start, so they keep their maps.
+    With the gains fitted (they couple every pixel) every pixel is fitted again."""
+    pixels = stage.pixels
+    if not state.options.gains.fitted and state.result is not None:
+        pixels = inputs.shaded(inputs.relief, stage.pixels, state.light_distance)
+    n, total = int(pixels.sum()), int(stage.pixels.sum())
+    log(f"relief: {said}{n} of {total} pixels shaded under some light, fitted again under "
+        "their lights' visibility" + ("" if n < total else " (every pixel)"))
+    if n == total:
+        return fit_in_blocks(inputs, stage.pixels, state.options, state.gains,
+                             state.light_distance, log, start_pixels=stage.pixels)
+    first = state.result
+    settings = dict(first.fit_settings)
+    if n:
+        part = fit_in_blocks(inputs, pixels, state.options, state.gains,
+                             state.light_distance, log, start_pixels=stage.pixels)
+        first = merge_block(first, part)
+    first.fit_settings = settings
+    first.mask = stage.pixels
+    return first
 
 
 def check_finite(result: MapsResult) -> MapsResult:

@@ -17,12 +17,17 @@ way (:func:`choose_shadows`): on the same subsample and folds, the held-out squa
 of each pixel, fitted without the relief (the ratio test only, the lights relit unshaded) and
 under the relief's visibility (the lights below a pixel's horizon left out, the held-out
 lights relit shaded by their visibility). Shadows matter at few (pixel, light) pairs, so a
-margin on the RMS over every light would hide them; instead the relief is kept when the
-pixels' paired differences (without minus with) have a mean above :data:`SHADOW_Z` standard
-errors (nearby pixels are not independent: the error is a scale, not a probability). A tie
-(nothing shades) keeps the simpler fit, no shadows. The relief is integrated once, from the
-normals of the fit of every light (a fold's held-out lights have seen the heights they are
-relit over; the folds refit every pixel of the subsample without them).
+margin on the RMS over every light would hide them; instead the paired per-pixel differences
+(without minus with) are compared over the pixels the relief shades under at least one of the
+capture's lights (:meth:`~mitsuba_powder.rti.inputs.FitInputs.shaded`; the others see the
+same data either way), and the relief is kept when their mean is above :data:`SHADOW_Z`
+standard errors (nearby pixels are not independent: the error is a scale, not a
+probability). The relief adds no free parameter (its heights are the fitted normals'), so no
+margin against overfitting is asked: it is kept when it relights the held-out lights better
+on average (``z > 0``), and refused when they contradict it. A tie (nothing shades) keeps the
+fit without it. The relief is integrated once, from the normals of the fit of every light (a
+fold's held-out lights have seen the heights they are relit over; the folds refit every pixel
+of the subsample without them).
 """
 
 from __future__ import annotations
@@ -48,8 +53,9 @@ FOLDS = 5
 #: best one's
 TOLERANCE = 0.01
 #: The relief's cast shadows are kept when they lower the held-out squared residuals by more
-#: than this many standard errors (their per-pixel difference, paired, over the subsample)
-SHADOW_Z = 2.0
+#: than this many standard errors (their per-pixel difference, paired, over the subsample's
+#: pixels that the relief shades): 0, any improvement, since the relief adds no parameter
+SHADOW_Z = 0.0
 #: The surface lobe's properties, the candidates' optional part
 LOBE = ("amplitude_surface", "correlation_length")
 
@@ -150,7 +156,7 @@ def held_out_squares(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
 class ShadowChoice:
     """The choice of the relief's cast shadows: the cross-validated RMS (linear units)
     without (``ratio``) and with (``relief``) them, the paired difference's ``z`` (in standard
-    errors), the mode chosen, the folds and pixels."""
+    errors, over the ``shaded`` pixels), the mode chosen, the folds and pixels."""
 
     ratio: float
     relief: float
@@ -158,11 +164,12 @@ class ShadowChoice:
     chosen: str
     folds: int
     pixels: int
+    shaded: int
 
     def to_dict(self) -> dict:
         return {"option": "auto", "cv_rms": {"ratio": self.ratio, "relief": self.relief},
                 "z": self.z, "chosen": self.chosen, "margin_z": SHADOW_Z,
-                "folds": self.folds, "pixels": self.pixels}
+                "folds": self.folds, "pixels": self.pixels, "shaded_pixels": self.shaded}
 
 
 def choose_shadows(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
@@ -170,21 +177,25 @@ def choose_shadows(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
                    folds: int = FOLDS) -> ShadowChoice:
     """``relief`` when the fit under ``relief``'s visibility relights the held-out lights of
     the pixels ``sub`` better than the fit without it by more than :data:`SHADOW_Z` standard
-    errors of the paired per-pixel difference, else ``ratio`` (module docstring)."""
+    errors of the paired per-pixel difference over the pixels it shades, else ``ratio``
+    (module docstring)."""
     folds = max(2, min(int(folds), len(inputs.d)))
     args = (inputs, sub, options.replace(shadows="ratio"), gains, light_distance, folds)
+    shaded = inputs.shaded(relief, sub, light_distance)[sub]
     a, na, fa = held_out_squares(*args)
-    b, nb, fb = held_out_squares(*args, relief)
+    b, nb, fb = held_out_squares(*args, relief) if shaded.any() else (a, na, fa)
     ok = fa & fb & (na > 0)
-    z = paired_z(a[ok] - b[ok])
+    z = paired_z(a[ok & shaded] - b[ok & shaded])
     ratio_rms = float(np.sqrt(a[ok].sum() / max(int(na[ok].sum()), 1)))
     relief_rms = float(np.sqrt(b[ok].sum() / max(int(nb[ok].sum()), 1)))
     chosen = "relief" if z > SHADOW_Z else "ratio"
     log(f"shadows: cross-validated over {folds} folds of the lights on {int(ok.sum())} "
         f"pixels: without the relief {ratio_rms:.4g}, with its cast shadows {relief_rms:.4g} "
-        f"(held-out RMS), the relief better by {z:.3g} standard errors (paired per pixel); "
-        f"chosen {chosen} (the relief needs more than {SHADOW_Z:g})")
-    return ShadowChoice(ratio_rms, relief_rms, z, chosen, folds, int(ok.sum()))
+        f"(held-out RMS); on the {int((ok & shaded).sum())} pixels it shades, the relief "
+        f"better by {z:.3g} standard errors (paired per pixel); chosen {chosen} (the relief "
+        f"needs more than {SHADOW_Z:g})")
+    return ShadowChoice(ratio_rms, relief_rms, z, chosen, folds, int(ok.sum()),
+                        int((ok & shaded).sum()))
 
 
 def paired_z(diff: np.ndarray) -> float:
