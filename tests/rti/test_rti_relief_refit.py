@@ -53,10 +53,45 @@ def test_only_the_shaded_pixels_are_fitted_again(capture, monkeypatch):
 
 
 def test_fitted_gains_refit_every_pixel(capture):
-    """With the gains fitted (they couple every pixel), every pixel is fitted again."""
-    _, lines = _fit(capture, gains="fit", exposure=1.0)
-    assert any("256 of 256 pixels shaded under some light, fitted again under their lights' "
-               "visibility (every pixel)" in line for line in lines), lines
+    """With the gains fitted with every pixel (they couple them all), every pixel is fitted
+    again; gains fitted on a subsample of pixels are held after it: the shaded pixels only."""
+    res, lines = _fit(capture, gains="fit", exposure=1.0)
+    assert any("every pixel fitted again under its lights' visibility (the gains are "
+               "fitted)" in line for line in lines), lines
+    assert res.fit_settings["relief_refit"]["pixels"] == 256
+    _, lines = _fit(capture, gains="fit", exposure=1.0, gain_subsample=64)
+    assert any("pixels shaded under some light, fitted again under their lights' visibility "
+               "(the others keep their maps)" in line for line in lines), lines
+
+
+def test_the_diagnostics_count_both_fits(capture, monkeypatch):
+    """fit.json's diagnostics after a partial refit: the underdetermined pixels are those of
+    the merged maps (NaN residual), the evaluations both fits', the refit's own apart."""
+    res, _ = _fit(capture)
+    record = res.fit_settings["relief_refit"]
+    assert 0 < record["pixels"] < 256 and record["evaluations"] > 0
+    assert res.fit_settings["evaluations"] > record["evaluations"]
+    nan = int(np.count_nonzero(~np.isfinite(res.residual_rms[res.mask])))
+    assert res.fit_settings["underdetermined_pixels"] == nan
+    # a refit whose pixels are all underdetermined (every light left out) is counted
+    from mitsuba_powder.rti import inputs as rti_inputs
+
+    picked = np.zeros((16, 16), dtype=bool)
+    picked[4:6, 4:6] = True
+    monkeypatch.setattr(rti_inputs.FitInputs, "shaded",
+                        lambda self, relief, sel, light_distance, rows=64: picked & sel)
+    real = rti_inputs.FitData.usable.fget
+
+    def usable(data):  # the refit's 4 pixels see no usable observation
+        return np.zeros_like(real(data)) if len(data.obs) == 4 else real(data)
+
+    monkeypatch.setattr(rti_inputs.FitData, "usable", property(usable))
+    dark, _ = _fit(capture)
+    assert dark.fit_settings["relief_refit"] == {**dark.fit_settings["relief_refit"],
+                                                 "pixels": 4, "underdetermined_pixels": 4}
+    assert np.all(np.isnan(dark.residual_rms[picked]))
+    assert dark.fit_settings["underdetermined_pixels"] == int(
+        np.count_nonzero(~np.isfinite(dark.residual_rms[dark.mask])))
 
 
 def test_shaded_pixels_of_a_flat_and_a_stepped_relief(capture):

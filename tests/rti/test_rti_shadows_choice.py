@@ -11,7 +11,7 @@ import pytest
 
 from mitsuba_powder.rti import fit_maps
 from mitsuba_powder.rti.options import DEFAULTS, SHADOWS, fit_options
-from mitsuba_powder.rti.selection import SHADOW_Z, paired_z
+from mitsuba_powder.rti.selection import MIN_SHADED, SHADOW_Z, paired_z
 from mitsuba_powder.rti.synthetic import synthetic_capture
 
 
@@ -25,26 +25,29 @@ def test_auto_is_the_default_and_bad_values_are_named():
         fit_options(names={"shadows": "--shadows"}, shadows=1)
 
 
-@pytest.mark.parametrize("relief", [0.0, 0.25])
+@pytest.mark.parametrize("relief", [0.0, 0.25, 0.5])
 def test_a_capture_without_cast_shadows_keeps_the_ratio_test(relief):
     """SYNTHETIC captures rendered per pixel (no cast shadow; 24 lights at 10-80 degrees,
-    noise 0.005), flat (0) or with gentle bumps (0.25: normals tilted up to about 15
+    noise 0.005), flat (0) or with bumps (0.25, 0.5: normals tilted up to about 15 and 30
     degrees, whose integrated relief does shade some of the lights): the relief's shadows
     do not relight better, the fit is the ratio test's (the same maps as shadows="ratio")
-    and relight does not shade. Measured: cross-validated RMS 0.005771 without and with the
-    relief, z = 0 (flat: nothing shades, a tie), 0.006821 without and 0.006825 with,
-    z = -0.93 on the 8 pixels it shades (bumps)."""
+    and relight does not shade. Measured: flat, nothing shades (a tie, no second
+    cross-validation); 0.25, the relief shades 8 of the 256 pixels, fewer than MIN_SHADED (a
+    tie); 0.5, 83 pixels, cross-validated RMS 0.007231 without and 0.007822 with the relief,
+    z = -3.3 (the held-out lights contradict the shadows this capture does not have)."""
     cap = synthetic_capture(16, 16, lights=24, noise=0.005, relief=relief, seed=2)
     result = fit_maps(cap["images"], cap["directions"], rounds=1)
     choice = result.fit_settings["shadows_choice"]
     assert result.fit_settings["shadows"] == "ratio" and choice["chosen"] == "ratio"
     assert choice["z"] <= SHADOW_Z, choice
     assert choice["folds"] == 5 and choice["pixels"] == 256
-    if relief == 0:  # nothing shades: a tie, no second cross-validation
-        assert choice["shaded_pixels"] == 0 and choice["z"] == 0
+    if relief < 0.5:  # nothing or too little shades: a tie, no second cross-validation
+        assert choice["shaded_pixels"] < MIN_SHADED and choice["z"] == 0
         assert choice["cv_rms"]["relief"] == choice["cv_rms"]["ratio"]
     else:
-        assert 0 < choice["shaded_pixels"] < 256
+        assert MIN_SHADED <= choice["shaded_pixels"] < 256 and choice["z"] < -2
+        assert choice["cv_rms"]["relief"] > choice["cv_rms"]["ratio"]
+    assert (choice["shaded_pixels"] > 0) == (relief > 0)
     assert result.relief is not None  # kept, unused
     shades = float(np.min(result.relief.visibility(cap["directions"]))) < 0.5
     assert shades == (relief > 0)

@@ -90,7 +90,8 @@ class FitInputs:
         capture's lights (visibility < 1), the lights at ``light_distance``; computed ``rows``
         image rows at a time (the visibilities of a few rows in memory)."""
         out = np.zeros(self.shape, dtype=bool)
-        for r0 in range(0, self.shape[0], max(1, int(rows))):
+        rows = max(1, int(rows))
+        for r0 in range(0, self.shape[0], rows):
             part = np.zeros(self.shape, dtype=bool)
             part[r0:r0 + rows] = sel[r0:r0 + rows]
             if not part.any():

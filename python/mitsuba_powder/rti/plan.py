@@ -45,6 +45,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -378,11 +379,10 @@ def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
     t0 = time.perf_counter()
     relief = state.relief if state.relief is not None else _relief_of(first, inputs, log)
     seconds = time.perf_counter() - t0 + (state.shadows_choice or {}).get("relief_seconds", 0)
-    shadowed = relief.visibility(inputs.d, first.mask) < 0.5 if np.all(
+    below = _below_horizon(relief, inputs.d, first.mask) if np.all(
         np.isinf(state.light_distance)) else None
     result = _refit_shaded(replace(inputs, relief=relief), stage, state, log,
-                           "" if shadowed is None else
-                           f"{int(shadowed.sum())} observations below the horizon; ")
+                           "" if below is None else f"{below} observations below the horizon; ")
     t1 = time.perf_counter()
     result.relief = make_relief(result.normals, result.residual_rms, result.mask,
                                 inputs.options.light_size)
@@ -391,31 +391,68 @@ def fit_with_relief(inputs: FitInputs, stage: Stage, state: FitState, log: Log
     return replace(state, result=result)
 
 
+def _below_horizon(relief: Relief, directions: np.ndarray, mask: np.ndarray,
+                   rows: int = 64) -> int:
+    """How many (pixel, light) pairs of the pixels ``mask`` have the distant lights
+    ``directions`` less than half visible over ``relief``, ``rows`` image rows at a time."""
+    count = 0
+    for r0 in range(0, mask.shape[0], rows):
+        part = np.zeros_like(mask)
+        part[r0:r0 + rows] = mask[r0:r0 + rows]
+        if part.any():
+            count += int(np.count_nonzero(relief.visibility(directions, part) < 0.5))
+    return count
+
+
 def _refit_shaded(inputs: FitInputs, stage: Stage, state: FitState, log: Log, said: str
                   ) -> MapsResult:
     """The stage's pixels fitted under the visibility of ``inputs.relief``. With the gains
     held, only the pixels it shades under some light (visibility < 1) are fitted again: the
     others see the same data as in the maps so far (visibility 1 scales nothing, no light is
     left out), and every pixel's fit is its own from the same start, so they keep their maps.
-    With the gains fitted (they couple every pixel) every pixel is fitted again."""
-    pixels = stage.pixels
-    if not state.options.gains.fitted and state.result is not None:
-        pixels = inputs.shaded(inputs.relief, stage.pixels, state.light_distance)
-    n, total = int(pixels.sum()), int(stage.pixels.sum())
+    With the gains fitted (they couple every pixel) every pixel is fitted again, the gains
+    with them. The diagnostics in ``fit_settings`` count both fits where the maps merge both
+    (``underdetermined_pixels``: those of the merged maps); ``relief_refit`` has the second
+    fit's own."""
+    fit = partial(fit_in_blocks, inputs, options=state.options, gains=state.gains,
+                  light_distance=state.light_distance, log=log, start_pixels=stage.pixels)
+    total = int(stage.pixels.sum())
+    if state.options.gains.fitted:
+        log(f"relief: {said}every pixel fitted again under its lights' visibility (the "
+            "gains are fitted)")
+        result = fit(stage.pixels)
+        result.fit_settings["relief_refit"] = _refit_record(result, total)
+        return result
+    pixels = inputs.shaded(inputs.relief, stage.pixels, state.light_distance)
+    n = int(pixels.sum())
     log(f"relief: {said}{n} of {total} pixels shaded under some light, fitted again under "
-        "their lights' visibility" + ("" if n < total else " (every pixel)"))
-    if n == total:
-        return fit_in_blocks(inputs, stage.pixels, state.options, state.gains,
-                             state.light_distance, log, start_pixels=stage.pixels)
+        "their lights' visibility (the others keep their maps)")
     first = state.result
     settings = dict(first.fit_settings)
+    refit = {"pixels": 0, "evaluations": 0, "pixels_at_cap_last_round": 0,
+             "underdetermined_pixels": 0}
     if n:
-        part = fit_in_blocks(inputs, pixels, state.options, state.gains,
-                             state.light_distance, log, start_pixels=stage.pixels)
+        part = fit(pixels)
+        refit = _refit_record(part, n)
         first = merge_block(first, part)
-    first.fit_settings = settings
+        settings["evaluations"] = int(settings.get("evaluations", 0)) + refit["evaluations"]
+        for key in ("iterations_last_round", "rounds_at_cap"):
+            settings[key] = max(int(settings.get(key, 0)), int(part.fit_settings.get(key, 0)))
+        # pixels at the cap are counted per fit, not per pixel: the refit's are added
+        settings["pixels_at_cap_last_round"] = (int(settings.get("pixels_at_cap_last_round", 0))
+                                                + refit["pixels_at_cap_last_round"])
     first.mask = stage.pixels
+    settings["underdetermined_pixels"] = int(np.count_nonzero(
+        ~np.isfinite(first.residual_rms[stage.pixels])))
+    settings["relief_refit"] = refit
+    first.fit_settings = settings
     return first
+
+
+def _refit_record(part: MapsResult, pixels: int) -> dict:
+    """The relief stage's own diagnostics (``fit_settings["relief_refit"]``)."""
+    return {"pixels": int(pixels), **{key: int(part.fit_settings.get(key, 0)) for key in (
+        "evaluations", "pixels_at_cap_last_round", "underdetermined_pixels")}}
 
 
 def check_finite(result: MapsResult) -> MapsResult:

@@ -20,7 +20,8 @@ lights relit shaded by their visibility). Shadows matter at few (pixel, light) p
 margin on the RMS over every light would hide them; instead the paired per-pixel differences
 (without minus with) are compared over the pixels the relief shades under at least one of the
 capture's lights (:meth:`~mitsuba_powder.rti.inputs.FitInputs.shaded`; the others see the
-same data either way), and the relief is kept when their mean is above :data:`SHADOW_Z`
+same data either way; fewer than :data:`MIN_SHADED` of them is a tie, judged on too few
+pixels), and the relief is kept when their mean is above :data:`SHADOW_Z`
 standard errors (nearby pixels are not independent: the error is a scale, not a
 probability). The relief adds no free parameter (its heights are the fitted normals'), so no
 margin against overfitting is asked: it is kept when it relights the held-out lights better
@@ -43,9 +44,9 @@ from .pixelfit import Log, fit_pixels
 from .properties import MAP_DEFAULT_FREE
 from .relief import Relief
 
-__all__ = ["FOLDS", "SHADOW_Z", "TOLERANCE", "FreeChoice", "ShadowChoice", "choose_free",
-           "choose_shadows", "free_candidates", "held_out_rms", "held_out_squares",
-           "paired_z"]
+__all__ = ["FOLDS", "MIN_SHADED", "SHADOW_Z", "TOLERANCE", "Z_CAP", "FreeChoice",
+           "ShadowChoice", "choose_free", "choose_shadows", "free_candidates", "held_out_rms",
+           "held_out_squares", "paired_z"]
 
 #: Folds of the lights (light k is held out in fold ``k % FOLDS``)
 FOLDS = 5
@@ -56,6 +57,10 @@ TOLERANCE = 0.01
 #: than this many standard errors (their per-pixel difference, paired, over the subsample's
 #: pixels that the relief shades): 0, any improvement, since the relief adds no parameter
 SHADOW_Z = 0.0
+#: Fewer of the subsample's pixels shaded by the relief than this is a tie (too few to judge)
+MIN_SHADED = 10
+#: The largest |z| recorded (every shaded pixel gaining exactly the same has no spread)
+Z_CAP = 1000.0
 #: The surface lobe's properties, the candidates' optional part
 LOBE = ("amplitude_surface", "correlation_length")
 
@@ -182,10 +187,12 @@ def choose_shadows(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
     folds = max(2, min(int(folds), len(inputs.d)))
     args = (inputs, sub, options.replace(shadows="ratio"), gains, light_distance, folds)
     shaded = inputs.shaded(relief, sub, light_distance)[sub]
+    few = int(shaded.sum()) < MIN_SHADED
     a, na, fa = held_out_squares(*args)
-    b, nb, fb = held_out_squares(*args, relief) if shaded.any() else (a, na, fa)
+    b, nb, fb = (a, na, fa) if few else held_out_squares(*args, relief)
     ok = fa & fb & (na > 0)
-    z = paired_z(a[ok & shaded] - b[ok & shaded])
+    z = 0.0 if few or int((ok & shaded).sum()) < MIN_SHADED else \
+        float(np.clip(paired_z(a[ok & shaded] - b[ok & shaded]), -Z_CAP, Z_CAP))
     ratio_rms = float(np.sqrt(a[ok].sum() / max(int(na[ok].sum()), 1)))
     relief_rms = float(np.sqrt(b[ok].sum() / max(int(nb[ok].sum()), 1)))
     chosen = "relief" if z > SHADOW_Z else "ratio"
