@@ -1,7 +1,8 @@
 """Where a command writes: only under the output it was given, never over one of its inputs.
 
 Every file the package writes goes through :func:`output_path` (a file inside an output folder)
-or :func:`output_file` (an output file the caller named). Both check the target against the
+or :func:`output_file` (an output file the caller named; :func:`write_text_whole` and
+:func:`write_json` write one whole or not at all). Both check the target against the
 *inputs* of the running command: within :func:`guarding_inputs` (the command line opens one
 around each command; :func:`mitsuba_powder.rendering.render.render_scene` and
 :func:`mitsuba_powder.rti.maps.relight_files` open their own), every file the package's loaders
@@ -26,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import uuid
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -33,7 +35,8 @@ from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 
 __all__ = ["INCOMPLETE", "MANIFEST", "STAGING", "OutputError", "check_complete",
            "check_finite_json", "final_path", "guarding_inputs", "note_input", "output_file",
-           "output_names", "output_path", "protected_inputs", "staged_output"]
+           "output_names", "output_path", "protected_inputs", "staged_output", "write_json",
+           "write_text_whole"]
 
 _INPUTS: ContextVar[set[Path] | None] = ContextVar("mitsuba_powder_inputs", default=None)
 #: {resolved output folder: its staging folder} of the running command (:func:`staged_output`)
@@ -125,6 +128,39 @@ def output_file(path: str | Path, what: str = "output") -> Path:
     _check_not_input(target, p, what)
     p.parent.mkdir(parents=True, exist_ok=True)
     return p
+
+
+def write_text_whole(path: str | Path, text: str, what: str = "output") -> Path:
+    """Write the output file ``path`` whole or not at all: checked by :func:`output_file`
+    when it is written (so against every input read by then), ``text`` written to a temporary
+    file beside it and renamed over it; a failed or interrupted write leaves the previous file
+    as it was.
+
+    Raises:
+        OutputError: as :func:`output_file`.
+    """
+    p = output_file(path, what)
+    part = p.with_name(f".{p.name}.{uuid.uuid4().hex[:8]}.part")
+    try:
+        with open(part, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(part, p)
+    finally:
+        part.unlink(missing_ok=True)
+    return p
+
+
+def write_json(path: str | Path, obj, what: str = "output") -> Path:
+    """``obj`` as a JSON file (indent 1) through :func:`write_text_whole`, refused when it holds
+    NaN or Infinity (:func:`check_finite_json`): nothing is written then.
+
+    Raises:
+        OutputError: a non-finite value, or as :func:`output_file`.
+    """
+    check_finite_json(obj, f"{what} {path}")
+    return write_text_whole(path, json.dumps(obj, indent=1, allow_nan=False) + "\n", what)
 
 
 def _is_safe_relative(name: str) -> bool:
