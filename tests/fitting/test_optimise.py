@@ -10,6 +10,7 @@ from mitsuba_powder.fitting.optimise import (
     ParamSpec,
     batch_levenberg_marquardt,
     check_global_stage,
+    check_search,
     distinct_best,
     finite_difference_jacobian,
     multistart,
@@ -192,3 +193,25 @@ def test_without_nlopt_the_stage_says_how_to_install_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "nlopt", None)
     with pytest.raises(ImportError, match=r"pip install 'mitsuba-powder\[nlopt\]'.*sobol"):
         nlopt_search(TwoExponentials(), "crs2", 10, seed=0)
+
+
+def test_check_search_names_the_option_the_value_and_the_range(monkeypatch):
+    import sys
+
+    flags = ("--global", "--starts", "--seed")
+    with pytest.raises(ValueError, match=r"--seed = 4294967296 is out of range; valid range is "
+                                         r"\[0, 4294967295\]"):
+        check_search("sobol", 1, 2**32, flags)
+    with pytest.raises(ValueError, match=r"seed = -1 is out of range"):
+        check_search("sobol", 1, -1)
+    with pytest.raises(ValueError, match=r"seed = 1.5 is not an integer"):
+        check_search("sobol", 1, 1.5)
+    with pytest.raises(ValueError, match=r"--starts = 0 is out of range; valid range is "
+                                         r"\[1, inf\)"):
+        check_search("sobol", 0, 0, flags)
+    check_search("sobol", 1, 2**32 - 1)
+    monkeypatch.setitem(sys.modules, "nlopt", None)
+    check_search("sobol", 1, 0)  # the Sobol stage needs no nlopt
+    with pytest.raises(ValueError, match=r"--global = 'crs2': the global stages mlsl and crs2 "
+                                         r"use nlopt, which is not installed"):
+        check_search("crs2", 1, 0, flags)

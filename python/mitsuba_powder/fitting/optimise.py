@@ -36,7 +36,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .._checks import check_range
+from .._checks import check_range, out_of_range
 
 #: Relative cost difference under which two starts "reach the same loss"
 AGREEMENT = 0.01
@@ -414,6 +414,36 @@ def check_global_stage(name: str, option: str = "global_stage") -> str:
         raise ValueError(f"{option} = {name!r} is not a global stage; valid values are "
                          f"{', '.join(GLOBAL_STAGES)}")
     return name
+
+
+#: Seeds of the global stages lie in [0, SEED_LIMIT): nlopt.srand takes an unsigned 32-bit
+#: integer on every platform (a C ``unsigned long``), and the Sobol scrambling the same seeds
+SEED_LIMIT = 2**32
+
+
+def check_search(global_stage: str, starts, seed,
+                 options: tuple[str, str, str] = ("global_stage", "starts", "seed")) -> None:
+    """The options of a global stage, checked before any work: a known stage
+    (:func:`check_global_stage`) whose module is installed (nlopt for ``mlsl`` and ``crs2``),
+    ``starts >= 1`` and an integer ``seed`` in [0, :data:`SEED_LIMIT`); each error names the
+    option (``options``: the names of the three, e.g. ``("--global", "--starts", "--seed")``),
+    its value and the valid values.
+
+    Raises:
+        ValueError: any of them (also a missing nlopt, which :func:`nlopt_search` reports as
+            an ImportError once the work has started).
+    """
+    check_global_stage(global_stage, options[0])
+    if global_stage != "sobol":
+        try:
+            _nlopt()
+        except ImportError as exc:
+            raise ValueError(f"{options[0]} = {global_stage!r}: {exc}") from None
+    check_range(options[1], starts, 1)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"{options[2]} = {seed!r} is not an integer")
+    if not 0 <= seed < SEED_LIMIT:
+        raise ValueError(out_of_range(f"{options[2]} = {seed}", f"[0, {SEED_LIMIT - 1}]"))
 
 
 def _nlopt():

@@ -23,14 +23,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import _optics
-from .._checks import check_range
 from ..plugin import registry
 from ..plugin.grains import GrainOptics, volume_fractions
 from .optimise import (
     DEFAULT_STARTS,
     NLOPT_EVALUATIONS_PER_START,
     MultistartResult,
-    check_global_stage,
+    check_search,
     multistart,
     nlopt_search,
     sobol_starts,
@@ -293,12 +292,12 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     Raises:
         ValueError: fewer than two populations or more than four, arrays of different lengths,
             a non-positive or non-finite sigma, an albedo outside [0, 1], fewer wavelengths
-            than free variables, an unknown global stage, starts or max_evaluations < 1, or what
+            than free variables, an unknown global stage or one without nlopt installed, starts
+            or max_evaluations < 1, a seed outside [0, 2^32)
+            (:func:`~mitsuba_powder.fitting.optimise.check_search`), or what
             :func:`volume_fractions` and the grain optics refuse.
-        ImportError: ``mlsl`` or ``crs2`` without nlopt installed.
     """
-    check_global_stage(global_stage)
-    check_range("starts", starts, 1)
+    check_search(global_stage, starts, seed)
     wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
     rho = np.atleast_1d(np.asarray(albedo, dtype=float))
     sig = np.atleast_1d(np.asarray(sigma, dtype=float))
