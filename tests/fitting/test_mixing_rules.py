@@ -206,7 +206,7 @@ def test_unmix_cli_with_a_baseline(tmp_path, capsys):
     assert main(mix + ["--baseline", "km"]) == 2
     assert "--baseline needs --endmembers" in capsys.readouterr().err
     assert main(mix + ["--endmembers", str(tmp_path / "red.csv")]) == 2
-    assert "--endmembers need --baseline" in capsys.readouterr().err
+    assert "--endmembers needs --baseline" in capsys.readouterr().err
 
 
 def test_km_constants_of_a_tint_as_white_as_the_white():

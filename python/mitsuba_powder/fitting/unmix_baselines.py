@@ -358,7 +358,7 @@ class PowderReflectance:
 
 
 def unmix_powder(wl, reflectance, sigma, parts, by: str = "volume", geometry="0:d",
-                 properties: dict | None = None) -> SpectrumUnmixing:
+                 properties: dict | None = None, seed: int = 0) -> SpectrumUnmixing:
     """The powder model's unmixing of a reflectance spectrum (module docstring): today's
     :func:`~mitsuba_powder.fitting.unmix.unmix` on the albedo the plugin inverts from the
     reflectance (its uncertainty ``sigma / (dR / d rho)``), then the fractions refined on the
@@ -370,13 +370,14 @@ def unmix_powder(wl, reflectance, sigma, parts, by: str = "volume", geometry="0:
             the materials' optical constants and the radii make the model).
         properties: the plugin's other properties (``tau_o`` required; e.g. ``energy``,
             ``extinction``, ``g``).
+        seed: of the Sobol scrambling of the albedo's unmixing.
     """
     from ..plugin.grains import mixture_albedo, mixture_properties
 
     wl, r, sig, _ = _check_spectra(wl, reflectance, sigma, None, parts)
     engine = PowderReflectance(wl, geometry, dict(properties or {}))
     albedo, slope, clipped = engine.albedo(r)
-    u = unmix(wl, albedo, sig / np.maximum(slope, 1e-6), parts, by=by)
+    u = unmix(wl, albedo, sig / np.maximum(slope, 1e-6), parts, by=by, seed=seed)
 
     def model(f: np.ndarray) -> np.ndarray:
         mix = [(m, float(v), x) for (m, _, x), v in zip(parts, f)]
