@@ -224,3 +224,18 @@ def test_a_fraction_at_the_edge_is_reported():
                  [("kaolinite", 0.5, 1.0), ("hematite", 0.5, 0.1)])
     assert u.mass_fractions[0] < 1e-4
     assert any("the fraction of kaolinite is below 0.0001" in w for w in u.warnings)
+
+
+def test_a_singular_fit_reports_without_a_numpy_warning():
+    """Three identical masstones: the mixture does not depend on the fractions, the Jacobian
+    is singular; the result says so (infinite or NaN uncertainties, which the command line
+    refuses to report with exit 0), without numpy's RuntimeWarning on the way."""
+    import warnings
+
+    e = endmembers()
+    parts = [("kaolinite", 0.4, 1.0), ("hematite", 0.3, 0.1), ("magnetite", 0.3, 0.3)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        u = unmix_km(WL, 0.9 * e[0], np.full(len(WL), 1e-3), np.array([e[0]] * 3), parts)
+    assert "the Jacobian is singular" in u.warnings[0]
+    assert not np.all(np.isfinite(u.mass_fraction_errors))

@@ -57,6 +57,8 @@ def albedo_csv(tmp_path) -> str:
     (["--mix", ",".join(f"kaolinite:20%:{r}um" for r in (1, 2, 3, 4, 5))],
      "the number of populations = 5 is out of range; valid range is [2, 4]"),
     (["--mix", "kaolinite:50%"], "--mix 'kaolinite:50%': mixture item"),
+    (["--mix", "kaolinite:50%:1um,kaolinite:50%:1um"],
+     "kaolinite of radius 1 um is given twice: two identical populations cannot be told apart"),
     (["--mix", MIX, "--starts", "0"], "--starts = 0 is out of range; valid range is [1, inf)"),
     (["--mix", MIX, "--seed", "-1"], "--seed = -1 is out of range; valid range is [0, "
                                      "4294967295]"),
@@ -234,3 +236,29 @@ def test_json_is_written_whole_or_not_at_all(swatches, tmp_path, capsys, monkeyp
     assert code == 2 and "No space left on device" in err, err
     assert out.read_text() == "previous\n"
     assert sorted(p.name for p in tmp_path.iterdir() if "result" in p.name) == ["result.json"]
+
+
+def test_a_degenerate_result_is_an_error_not_a_nan_with_exit_0(swatches, tmp_path, capsys,
+                                                               monkeypatch):
+    """A fit whose uncertainties are not finite (a singular Jacobian: e.g. identical
+    masstones, where rounding decides between huge and NaN) is printed with its warnings,
+    then exit code 2, and --json is not written."""
+    from mitsuba_powder.fitting import unmix_baselines
+
+    real = unmix_baselines.unmix_km
+
+    def singular(*args, **kwargs):
+        u = real(*args, **kwargs)
+        u.mass_fraction_errors[1] = np.nan
+        u.warnings.append("the Jacobian is singular: the data cannot decide the fractions")
+        return u
+
+    monkeypatch.setattr(unmix_baselines, "unmix_km", singular)
+    out = tmp_path / "km.json"
+    for json_option in ([], ["--json", str(out)]):
+        code = main(["unmix", swatches["mix"], "--mix", MIX, "--baseline", "km",
+                     "--endmembers", swatches["ends"], *json_option])
+        captured = capsys.readouterr()
+        assert code == 2 and "the Jacobian is singular" in captured.out
+        assert "would hold NaN or Infinity at [0].mass_fraction_errors[1]" in captured.err
+    assert not out.exists()

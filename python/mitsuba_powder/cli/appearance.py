@@ -178,9 +178,9 @@ def _read_albedo_csv(path: str) -> tuple:
 
 def _mix(args: argparse.Namespace) -> list[tuple[str, float, float]]:
     """The populations of ``--mix`` (:func:`~mitsuba_powder.plugin.grains.parse_mix`), checked
-    before any work: two to four, known materials, radii > 0, start fractions in [0, 1]
-    summing to 1 by ``--by`` (:func:`~mitsuba_powder.plugin.grains.volume_fractions`); the
-    errors quote ``--mix``."""
+    before any work: two to four, known materials, radii > 0, no population twice, start
+    fractions in [0, 1] summing to 1 by ``--by``
+    (:func:`~mitsuba_powder.plugin.grains.volume_fractions`); the errors quote ``--mix``."""
     from .._checks import check_range
     from ..plugin import registry
     from ..plugin.grains import GrainOptics, parse_mix, volume_fractions
@@ -189,9 +189,12 @@ def _mix(args: argparse.Namespace) -> list[tuple[str, float, float]]:
         parts = parse_mix(args.mix)
         check_range("the number of populations", len(parts), 2, registry.MAX_POPULATIONS,
                     "[]")
-        for material, _, radius in parts:
+        for j, (material, _, radius) in enumerate(parts):
             GrainOptics({"material": material})  # a known material or a readable YAML file
             check_range(f"the radius of {material}", radius, 0.0, closed="()", unit="um")
+            if (material, radius) in [(m, r) for m, _, r in parts[:j]]:
+                raise ValueError(f"{material} of radius {radius:g} um is given twice: two "
+                                 "identical populations cannot be told apart; give it once")
         volume_fractions([(m, f) for m, f, _ in parts], args.by)
     except ValueError as exc:
         raise ValueError(f"--mix {args.mix!r}: {exc}") from None
@@ -230,7 +233,7 @@ def _check_unmix_options(args: argparse.Namespace) -> None:
 
 def _cmd_unmix(args: argparse.Namespace) -> int:
     from ..fitting.unmix import unmix
-    from ..outputs import output_file, write_json
+    from ..outputs import output_file
 
     _check_unmix_options(args)
     parts = _mix(args)
@@ -252,14 +255,23 @@ def _cmd_unmix(args: argparse.Namespace) -> int:
               f"{r.radii[j]:10.4g} {r.radius_errors[j]:7.2g}")
     for w in r.warnings:
         print(f"warning: {w}")
+    doc = {"materials": r.materials, "volume_fractions": r.fractions.tolist(),
+           "volume_fraction_errors": r.fraction_errors.tolist(),
+           "mass_fractions": None if r.mass_fractions is None else r.mass_fractions.tolist(),
+           "radii_um": r.radii.tolist(), "radius_errors_um": r.radius_errors.tolist(),
+           "chi2": r.chi2, "dof": r.dof, "global_stage": r.global_stage,
+           "evaluations": r.evaluations, "warnings": r.warnings}
+    return _unmix_output(args, doc)
+
+
+def _unmix_output(args: argparse.Namespace, doc) -> int:
+    """``unmix``'s result ``doc``: an error (exit 2) when it holds NaN or Infinity (a
+    degenerate result: the warnings printed above say why), else written to ``--json`` when
+    given (:func:`~mitsuba_powder.outputs.write_json`)."""
+    from ..outputs import check_finite_json, write_json
+
+    check_finite_json(doc, f"--json {args.json}" if args.json else "the result")
     if args.json:
-        doc = {"materials": r.materials, "volume_fractions": r.fractions.tolist(),
-               "volume_fraction_errors": r.fraction_errors.tolist(),
-               "mass_fractions": None if r.mass_fractions is None else
-               r.mass_fractions.tolist(), "radii_um": r.radii.tolist(),
-               "radius_errors_um": r.radius_errors.tolist(), "chi2": r.chi2, "dof": r.dof,
-               "global_stage": r.global_stage, "evaluations": r.evaluations,
-               "warnings": r.warnings}
         print(f"wrote {write_json(args.json, doc, '--json')}")
     return 0
 
@@ -349,7 +361,7 @@ def _cmd_unmix_reflectance(args: argparse.Namespace, parts: list) -> int:
     import numpy as np
 
     from ..fitting.unmix_baselines import unmix_hapke, unmix_km, unmix_powder
-    from ..outputs import output_file, write_json
+    from ..outputs import output_file
 
     args.geometry = "0:d" if args.geometry is None else args.geometry
     if args.baseline in ("km", "all") and args.geometry.strip() not in ("0:d", "0/d"):
@@ -377,15 +389,12 @@ def _cmd_unmix_reflectance(args: argparse.Namespace, parts: list) -> int:
     print(f"unmixing the reflectance {args.albedo}: {len(wl)} wavelengths, geometry "
           f"{args.geometry}")
     _print_unmix_rows(results)
-    if args.json:
-        as_list = lambda v: None if v is None else v.tolist()  # noqa: E731
-        doc = [{"method": u.method, "materials": u.materials,
-                "mass_fractions": as_list(u.mass_fractions),
-                "mass_fraction_errors": as_list(u.mass_fraction_errors),
-                "volume_fractions": as_list(u.volume_fractions),
-                "volume_fraction_errors": as_list(u.volume_fraction_errors),
-                "rms_reflectance": u.rms, "chi2": u.chi2, "dof": u.dof,
-                "reflectance": u.reflectance.tolist(), "warnings": u.warnings}
-               for u in results]
-        print(f"wrote {write_json(args.json, doc, '--json')}")
-    return 0
+    as_list = lambda v: None if v is None else v.tolist()  # noqa: E731
+    return _unmix_output(args, [
+        {"method": u.method, "materials": u.materials,
+         "mass_fractions": as_list(u.mass_fractions),
+         "mass_fraction_errors": as_list(u.mass_fraction_errors),
+         "volume_fractions": as_list(u.volume_fractions),
+         "volume_fraction_errors": as_list(u.volume_fraction_errors),
+         "rms_reflectance": u.rms, "chi2": u.chi2, "dof": u.dof,
+         "reflectance": u.reflectance.tolist(), "warnings": u.warnings} for u in results])

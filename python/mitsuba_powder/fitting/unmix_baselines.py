@@ -170,7 +170,8 @@ def _fit_rule(method: str, model, parts, by: str, r: np.ndarray, sig: np.ndarray
     a = np.exp(z)
     f, g = _fractions(a)
     ga = g * a[None, :]
-    cov_f = ga @ cov_z @ ga.T
+    with np.errstate(invalid="ignore"):  # a singular fit: inf * 0, reported by the callers
+        cov_f = ga @ cov_z @ ga.T
     absent = [m for m, v in zip(materials, f) if v < ABSENT]
     if absent:
         warnings.append(f"the fraction of {', '.join(absent)} is below {ABSENT:g}: the rule "
