@@ -26,7 +26,7 @@ from mitsuba_powder.outputs import (
     output_names,
     output_path,
     write_json,
-    write_text_whole,
+    write_whole,
 )
 from mitsuba_powder.variants import use_variant
 
@@ -103,7 +103,7 @@ def test_write_json_is_whole_or_nothing(tmp_path, monkeypatch):
     data.write_text("1\n")
     with guarding_inputs(data):
         with pytest.raises(OutputError, match="--json .*data.csv is an input file"):
-            write_text_whole(data, "x", "--json")
+            write_whole(data, "x", "--json")
 
     def full(*args, **kwargs):
         raise OSError(28, "No space left on device")
