@@ -239,3 +239,14 @@ def test_a_singular_fit_reports_without_a_numpy_warning():
         u = unmix_km(WL, 0.9 * e[0], np.full(len(WL), 1e-3), np.array([e[0]] * 3), parts)
     assert "the Jacobian is singular" in u.warnings[0]
     assert not np.all(np.isfinite(u.mass_fraction_errors))
+
+
+def test_bad_spectra_name_the_wavelength_and_the_value():
+    e = endmembers()[:2]
+    parts = [("kaolinite", 0.5, 1.0), ("hematite", 0.5, 0.1)]
+    sigma = np.full(len(WL), 1e-3)
+    with pytest.raises(ValueError, match=r"sigma at 440 nm = -0.001 is out of range; valid "
+                                         r"range is \(0, inf\)"):
+        unmix_hapke(WL, e[0], np.where(WL == 440, -1e-3, sigma), e, parts)
+    with pytest.raises(ValueError, match=r"the reflectance at 400 nm = nan is out of range"):
+        unmix_km(WL, np.where(WL == 400, np.nan, e[0]), sigma, e, parts)

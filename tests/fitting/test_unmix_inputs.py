@@ -64,6 +64,7 @@ def albedo_csv(tmp_path) -> str:
                                      "4294967295]"),
     (["--mix", MIX, "--seed", str(2**70), "--global", "crs2"], f"--seed = {2**70} is out of"),
     (["--mix", MIX, "--geometry", "45:0"], "--geometry needs --baseline"),
+    (["--mix", MIX, "--json", ""], "--json '': give a file name"),
     (["--mix", MIX, "--tints", "t.csv:10%"], "--tints needs --baseline"),
 ])
 def test_bad_options_name_the_option_and_the_range(albedo_csv, capsys, options, fragment):
@@ -148,6 +149,10 @@ def swatches(tmp_path) -> dict[str, str]:
     (["--baseline", "hapke", "--endmembers", "{ends}", "--seed", "-2"], "--seed = -2 is out"),
     (["--baseline", "all", "--endmembers", "{ends}", "--set", "tau_o"],
      "--set 'tau_o': expected NAME=VALUE"),
+    (["--baseline", "hapke", "--endmembers", "{ends}", "--geometry", "95:0"],
+     "--geometry: geometry = '95:0': theta_i must lie in [0, 90)"),
+    (["--baseline", "km", "--endmembers", "{ends}", "--geometry", "0:45"],
+     "--geometry 0:45: Kubelka-Munk's R_inf is a hemispherical reflectance; give 0:d"),
     (["--baseline", "hapke", "--endmembers", "{e0},{e1},{big}"],
      "big.csv, line 2 (reflectance) = 1.2 is out of range; valid range is [0, 1]"),
 ])
@@ -262,3 +267,10 @@ def test_a_degenerate_result_is_an_error_not_a_nan_with_exit_0(swatches, tmp_pat
         assert code == 2 and "the Jacobian is singular" in captured.out
         assert "would hold NaN or Infinity at [0].mass_fraction_errors[1]" in captured.err
     assert not out.exists()
+
+
+def test_km_takes_the_geometry_as_the_other_rules_spell_it(swatches, capsys):
+    """``0/D`` is 0:d for every rule (Kubelka-Munk refused it as not 0:d)."""
+    code = main(["unmix", swatches["mix"], "--mix", MIX, "--baseline", "km", "--endmembers",
+                 swatches["ends"], "--geometry", "0/D"])
+    assert code == 0, capsys.readouterr().err

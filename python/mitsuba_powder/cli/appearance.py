@@ -225,6 +225,8 @@ def _check_unmix_options(args: argparse.Namespace) -> None:
             raise ValueError("--tints are Kubelka-Munk's: with --baseline km or all")
         if args.set and args.baseline != "all":
             raise ValueError("--set gives the powder row's properties: only with --baseline all")
+    if args.json is not None and not args.json.strip():
+        raise ValueError(f"--json {args.json!r}: give a file name")
     args.global_stage = args.global_stage or "sobol"
     args.starts = DEFAULT_STARTS if args.starts is None else args.starts
     args.seed = 0 if args.seed is None else args.seed
@@ -278,10 +280,15 @@ def _unmix_output(args: argparse.Namespace, doc) -> int:
 
 def _reflectance_range(geometry: str) -> tuple[float, float, str]:
     """The range of a measured reflectance at ``geometry``: [0, 1] for 0:d (a hemispherical
-    reflectance), [0, inf) for a reflectance factor (which may exceed 1)."""
+    reflectance), [0, inf) for a reflectance factor (which may exceed 1); a bad geometry is an
+    error naming ``--geometry``."""
     from ..fitting.mixing_rules import hapke_geometry
 
-    return (0.0, 1.0, "[]") if hapke_geometry(geometry) is None else (0.0, math.inf, "[)")
+    try:
+        hemispherical = hapke_geometry(geometry) is None
+    except ValueError as exc:
+        raise ValueError(f"--geometry: {exc}") from None
+    return (0.0, 1.0, "[]") if hemispherical else (0.0, math.inf, "[)")
 
 
 def _read_swatches(args, wl, n: int) -> tuple:
@@ -364,7 +371,8 @@ def _cmd_unmix_reflectance(args: argparse.Namespace, parts: list) -> int:
     from ..outputs import output_file
 
     args.geometry = "0:d" if args.geometry is None else args.geometry
-    if args.baseline in ("km", "all") and args.geometry.strip() not in ("0:d", "0/d"):
+    reflectance = _reflectance_range(args.geometry)
+    if args.baseline in ("km", "all") and reflectance[1] != 1.0:
         raise ValueError(f"--geometry {args.geometry}: Kubelka-Munk's R_inf is a "
                          "hemispherical reflectance; give 0:d")
     props = _fixed_properties(args.set)
@@ -372,7 +380,7 @@ def _cmd_unmix_reflectance(args: argparse.Namespace, parts: list) -> int:
         args.albedo, f"{args.albedo}: no such file", "the reflectance CSV",
         ["wavelength", "reflectance", "sigma"],
         "wavelength in nm, reflectance, its standard uncertainty",
-        [_WAVELENGTH, _reflectance_range(args.geometry), _SIGMA])).T
+        [_WAVELENGTH, reflectance, _SIGMA])).T
     ends, tints = _read_swatches(args, wl, len(parts))
     if args.json:
         output_file(args.json, "--json")  # every input read: refused before the work

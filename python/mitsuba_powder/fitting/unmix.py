@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import _optics
+from .._checks import check_each
 from ..plugin import registry
 from ..plugin.grains import GrainOptics, volume_fractions
 from .optimise import (
@@ -98,10 +99,9 @@ def _check_inputs(wl: np.ndarray, rho: np.ndarray, sig: np.ndarray, parts: list)
     if not (len(wl) == len(rho) == len(sig)):
         raise ValueError(f"wavelengths, albedo and sigma differ in length ({len(wl)}, "
                          f"{len(rho)}, {len(sig)})")
-    if not np.all(np.isfinite(sig) & (sig > 0)):
-        raise ValueError("sigma must be finite and > 0 at every wavelength")
-    if not np.all(np.isfinite(rho) & (rho >= 0) & (rho <= 1)):
-        raise ValueError("the albedo must be in [0, 1] at every wavelength")
+    at = [f" at {w:g} nm" for w in wl]
+    check_each("sigma", sig, 0.0, math.inf, "()", at)
+    check_each("the albedo", rho, 0.0, 1.0, "[]", at)
 
 
 def _start_amounts(parts: list, by: str, free_radii: bool, wavelengths: int) -> np.ndarray:

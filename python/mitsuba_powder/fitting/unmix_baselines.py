@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._checks import check_each
 from ..plugin import registry
 from . import mixing_rules as rules
 from .optimise import finite_difference_jacobian, multistart, sobol_starts
@@ -113,10 +114,9 @@ def _check_spectra(wl, reflectance, sigma, endmembers, parts) -> tuple:
                          f"{len(r)}, {len(sig)})")
     if not np.all(np.diff(wl) > 0):
         raise ValueError("the wavelengths must increase")
-    if not np.all(np.isfinite(sig) & (sig > 0)):
-        raise ValueError("sigma must be finite and > 0 at every wavelength")
-    if not np.all(np.isfinite(r)):
-        raise ValueError("the reflectance must be finite at every wavelength")
+    at = [f" at {w:g} nm" for w in wl]
+    check_each("sigma", sig, 0.0, math.inf, "()", at)
+    check_each("the reflectance", r, -math.inf, math.inf, "()", at)
     if not 2 <= len(parts) <= registry.MAX_POPULATIONS:
         raise ValueError(f"unmixing {len(parts)} populations; valid range is "
                          f"[2, {registry.MAX_POPULATIONS}]")
