@@ -274,3 +274,11 @@ def test_km_takes_the_geometry_as_the_other_rules_spell_it(swatches, capsys):
     code = main(["unmix", swatches["mix"], "--mix", MIX, "--baseline", "km", "--endmembers",
                  swatches["ends"], "--geometry", "0/D"])
     assert code == 0, capsys.readouterr().err
+
+
+def test_help_shows_the_tints_metavar_as_typed(capsys):
+    """A metavar is not %-formatted: ``10%%`` showed as typed."""
+    with pytest.raises(SystemExit):
+        main(["unmix", "--help"])
+    out = capsys.readouterr().out
+    assert "--tints T2.csv:10%,..." in out and "%%" not in out

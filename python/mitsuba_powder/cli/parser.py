@@ -209,7 +209,7 @@ def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--endmembers", default=None, metavar="A.csv,B.csv,...",
                    help="with --baseline: each pure material's reflectance (wavelength, "
                         "reflectance), in the order of --mix")
-    p.add_argument("--tints", default=None, metavar="T2.csv:10%%,...",
+    p.add_argument("--tints", default=None, metavar="T2.csv:10%,...",
                    help="with --baseline km or all: a tint of each pigment 2..n with the white "
                         "(population 1) and the pigment's mass fraction in it (default: S = 1 "
                         "for every pigment)")
