@@ -215,3 +215,29 @@ def test_check_search_names_the_option_the_value_and_the_range(monkeypatch):
     with pytest.raises(ValueError, match=r"--global = 'crs2': the global stages mlsl and crs2 "
                                          r"use nlopt, which is not installed"):
         check_search("crs2", 1, 0, flags)
+
+
+def test_an_nlopt_stage_that_stops_before_any_point_is_a_clear_error(monkeypatch):
+    """nlopt failing before its first evaluation (a roundoff failure at the start) was
+    ``min() arg is an empty sequence``."""
+    import nlopt
+
+    from mitsuba_powder.fitting import optimise
+
+    real = optimise._nlopt_optimiser
+
+    class Stopping:
+        def __init__(self, opt):
+            self.opt = opt
+
+        def __getattr__(self, name):
+            return getattr(self.opt, name)
+
+        def optimize(self, y0):
+            raise nlopt.RoundoffLimited("roundoff")
+
+    monkeypatch.setattr(optimise, "_nlopt_optimiser", lambda *a: Stopping(real(*a)))
+    with pytest.raises(RuntimeError, match=r"the global stage crs2 \(nlopt\) stopped before "
+                                           r"evaluating a point \(nlopt stopped early: "
+                                           r"RoundoffLimited roundoff\)"):
+        nlopt_search(TwoExponentials(), "crs2", 10, seed=0)

@@ -535,6 +535,9 @@ def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed:
         # nlopt's own failures (not the objective's errors, which propagate as they are):
         # the points so far stand, the LM steps and the polish follow
         stopped = f" (nlopt stopped early: {type(error).__name__} {error})"
+    if not points:
+        raise RuntimeError(f"the global stage {method} (nlopt) stopped before evaluating a "
+                           f"point{stopped}; try --global sobol")
     stages = [f"global: nlopt {method} ({opt.get_algorithm_name()}), {len(points)} "
               f"evaluations, best cost {min(costs):.6g}{stopped}"]
     if progress:
