@@ -241,3 +241,27 @@ def test_an_nlopt_stage_that_stops_before_any_point_is_a_clear_error(monkeypatch
                                            r"evaluating a point \(nlopt stopped early: "
                                            r"RoundoffLimited roundoff\)"):
         nlopt_search(TwoExponentials(), "crs2", 10, seed=0)
+
+
+class OutsideItsDomain(TwoExponentials):
+    """TwoExponentials whose model refuses a1 > 1.5 (as the plugin refuses a radius outside
+    its range): an error, not a cost."""
+
+    def residuals(self, y):
+        if np.any(np.atleast_2d(y)[:, 0] > 1.5):
+            raise ValueError("a1 outside the model's domain")
+        return super().residuals(y)
+
+    def jacobian(self, y):
+        if np.any(np.atleast_2d(y)[:, 0] > 1.5):
+            raise ValueError("a1 outside the model's domain")
+        return super().jacobian(y)
+
+
+@pytest.mark.parametrize("method", ["crs2", "mlsl"])
+def test_an_error_of_the_model_reaches_the_caller_as_it_is(method):
+    """CRS2 went on evaluating with the model's error pending, and Python failed with a
+    SystemError (a traceback from the command line)."""
+    for seed in range(3):
+        with pytest.raises(ValueError, match="a1 outside the model's domain"):
+            nlopt_search(OutsideItsDomain(), method, 300, seed=seed)
