@@ -282,3 +282,17 @@ def test_help_shows_the_tints_metavar_as_typed(capsys):
         main(["unmix", "--help"])
     out = capsys.readouterr().out
     assert "--tints T2.csv:10%,..." in out and "%%" not in out
+
+
+def test_free_radii_stay_in_the_plugins_range(albedo_csv, capsys):
+    """With --free-radii the radii's box was a factor 10 around --mix whatever the plugin
+    accepts: a 2 um host searched up to 20 um and failed with the plugin's error about a
+    radius nobody gave. The box now stays within the fittable radii, and a start outside
+    them is refused."""
+    mix = "kaolinite:50%:2um,hematite:50%:0.1um"
+    assert main(["unmix", albedo_csv, "--mix", mix, "--free-radii", "--starts", "4"]) == 0, \
+        capsys.readouterr().err
+    code, err = run(["unmix", albedo_csv, "--mix", "kaolinite:50%:5um,hematite:50%:0.1um",
+                     "--free-radii"], capsys)
+    assert code == 2 and "the start radius of kaolinite = 5.0 um is out of range; valid range " \
+                         "is [0.003, 3] um" in err, err

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import _optics
-from .._checks import check_each
+from .._checks import check_each, check_range
 from ..plugin import registry
 from ..plugin.grains import GrainOptics, volume_fractions
 from .optimise import (
@@ -35,8 +35,11 @@ from .optimise import (
     nlopt_search,
     sobol_starts,
 )
+from .variables import FITTABLE
 
-#: a fitted radius (um) stays within this factor of its start
+#: a fitted radius (um) stays within this factor of its start, and within the radii a
+#: goniometric fit frees (:data:`~mitsuba_powder.fitting.variables.FITTABLE`, inside the
+#: plugin's Mie range at 360-1000 nm)
 RADIUS_FACTOR = 10.0
 #: the amounts of populations 2..n relative to population 1 stay within [1/this, this]
 AMOUNT_LIMIT = 1e6
@@ -164,8 +167,9 @@ class _Residuals:
         self.lower = np.full(n - 1 + (n if model.free_radii else 0), -math.log(AMOUNT_LIMIT))
         self.upper = -self.lower
         if model.free_radii:
-            self.lower[n - 1:] = np.log(model.r0 / RADIUS_FACTOR)
-            self.upper[n - 1:] = np.log(model.r0 * RADIUS_FACTOR)
+            fittable = FITTABLE["radius"]
+            self.lower[n - 1:] = np.log(np.maximum(model.r0 / RADIUS_FACTOR, fittable.lower))
+            self.upper[n - 1:] = np.log(np.minimum(model.r0 * RADIUS_FACTOR, fittable.upper))
         self.evaluations = 0
 
     def _distinct(self, y: np.ndarray) -> int:
@@ -276,7 +280,8 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
         parts: ``(material, fraction, radius um)`` per population (two to four): the fractions
             are the start (by ``by``), the radii the fixed values (or the start, with
             ``free_radii``); population 1 (the first) must be present in the result.
-        free_radii: fit the radii too (within a factor :data:`RADIUS_FACTOR` of the start).
+        free_radii: fit the radii too (within a factor :data:`RADIUS_FACTOR` of the start
+            and within the fittable radii, 0.003-3 um; a start outside them is an error).
         by: how the start fractions are given (``mass`` or ``volume``).
         global_stage: the search (:data:`~mitsuba_powder.fitting.optimise.GLOBAL_STAGES`):
             ``sobol`` (``starts`` Sobol starts, ``parts`` the first, batched
@@ -307,6 +312,11 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     indices = [[complex(m) for m in GrainOptics({"material": mat}).index(wl)]
                for mat, _, _ in parts]
     r0 = np.array([float(r) for _, _, r in parts])
+    if free_radii:
+        for material, _, radius in parts:
+            check_range(f"the start radius of {material}", radius, FITTABLE["radius"].lower,
+                        FITTABLE["radius"].upper, "[]", unit="um",
+                        note="um (free radii: the radii fit frees)")
     # variables: log amounts then, with free_radii, log radii
     if free_radii:
         z0 = np.concatenate([z0, np.log(r0)])
