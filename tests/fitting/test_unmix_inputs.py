@@ -95,6 +95,14 @@ def test_bad_rows_of_the_albedo_csv_name_the_line(tmp_path, capsys, row, fragmen
     assert code == 2 and f"{path}, {fragment}" in err, err
 
 
+def test_a_wavelength_outside_a_materials_table_names_the_file(tmp_path, capsys):
+    rows = albedo_rows() + [(1200.0, 0.5, 0.01)]
+    path = write_csv(tmp_path / "albedo.csv", rows)
+    code, err = run(["unmix", path, "--mix", MIX], capsys)
+    assert code == 2 and f"{path}: wavelength 1200 nm lies outside the optical constants of " \
+                         "kaolinite" in err, err
+
+
 def test_unsorted_wavelengths_are_refused_not_fitted(tmp_path, capsys):
     path = write_csv(tmp_path / "albedo.csv", albedo_rows()[::-1])
     code, err = run(["unmix", path, "--mix", MIX], capsys)

@@ -201,6 +201,18 @@ def _mix(args: argparse.Namespace) -> list[tuple[str, float, float]]:
     return parts
 
 
+def _check_tables(path: str, wl, parts: list) -> None:
+    """The wavelengths of ``path`` within every material's table of optical constants (an
+    error naming the file, the wavelength, the material and its table's range)."""
+    from ..plugin.grains import GrainOptics
+
+    for material, _, _ in parts:
+        try:
+            GrainOptics({"material": material}).index(wl)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+
+
 def _check_unmix_options(args: argparse.Namespace) -> None:
     """The options of ``unmix`` that do not go together, and those of the search
     (:func:`~mitsuba_powder.fitting.optimise.check_search`, before any work): an option that
@@ -242,6 +254,7 @@ def _cmd_unmix(args: argparse.Namespace) -> int:
     if args.baseline is not None:
         return _cmd_unmix_reflectance(args, parts)
     wl, albedo, sigma = _read_albedo_csv(args.albedo)
+    _check_tables(args.albedo, wl, parts)
     if args.json:
         output_file(args.json, "--json")  # refused before the work if it is an input
     r = unmix(wl, albedo, sigma, parts, free_radii=args.free_radii, by=args.by,
@@ -382,6 +395,8 @@ def _cmd_unmix_reflectance(args: argparse.Namespace, parts: list) -> int:
         "wavelength in nm, reflectance, its standard uncertainty",
         [_WAVELENGTH, reflectance, _SIGMA])).T
     ends, tints = _read_swatches(args, wl, len(parts))
+    if args.baseline == "all":  # the powder row's model: the materials' optical constants
+        _check_tables(args.albedo, wl, parts)
     if args.json:
         output_file(args.json, "--json")  # every input read: refused before the work
     runs = []
