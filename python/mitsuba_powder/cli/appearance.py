@@ -182,7 +182,6 @@ def _mix(args: argparse.Namespace) -> list[tuple[str, float, float]]:
     fractions in [0, 1] summing to 1 by ``--by``
     (:func:`~mitsuba_powder.plugin.grains.volume_fractions`); the errors quote ``--mix``."""
     from .._checks import check_range
-    from ..plugin import registry
     from ..plugin.grains import GrainOptics, parse_mix, volume_fractions
 
     try:
@@ -385,7 +384,7 @@ def _cmd_unmix_reflectance(args: argparse.Namespace, parts: list) -> int:
 
     args.geometry = "0:d" if args.geometry is None else args.geometry
     reflectance = _reflectance_range(args.geometry)
-    if args.baseline in ("km", "all") and reflectance[1] != 1.0:
+    if args.baseline in ("km", "all") and reflectance[1] != 1.0:  # not 0:d
         raise ValueError(f"--geometry {args.geometry}: Kubelka-Munk's R_inf is a "
                          "hemispherical reflectance; give 0:d")
     props = _fixed_properties(args.set)

@@ -317,9 +317,7 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
             check_range(f"the start radius of {material}", radius, FITTABLE["radius"].lower,
                         FITTABLE["radius"].upper, "[]", unit="um",
                         note="um (free radii: the radii fit frees)")
-    # variables: log amounts then, with free_radii, log radii
-    if free_radii:
-        z0 = np.concatenate([z0, np.log(r0)])
+        z0 = np.concatenate([z0, np.log(r0)])  # variables: log amounts, then log radii
     model = _Mixture(wl, indices, r0, free_radii)
     problem = _Residuals(model, rho, sig)
     search = _search(problem, z0, global_stage, starts, seed, max_evaluations)
