@@ -103,6 +103,19 @@ def test_a_wavelength_outside_a_materials_table_names_the_file(tmp_path, capsys)
                          "kaolinite" in err, err
 
 
+def test_too_few_rows_for_the_free_variables(tmp_path, capsys, swatches):
+    path = write_csv(tmp_path / "albedo.csv", albedo_rows()[:2])
+    code, err = run(["unmix", path, "--mix", MIX], capsys)
+    assert code == 2 and "2 wavelengths for 2 free variables: the fit is not determined" in err
+    for name in ("mix", "e0", "e1", "e2"):  # the header and two wavelengths in each spectrum
+        lines = Path(swatches[name]).read_text().splitlines()[:3]
+        Path(swatches[name]).write_text("\n".join(lines) + "\n")
+    code, err = run(["unmix", swatches["mix"], "--mix", MIX, "--baseline", "hapke",
+                     "--endmembers", swatches["ends"]], capsys)
+    assert code == 2 and "2 wavelengths for 2 free fractions: the fit is not determined" in \
+        err, err
+
+
 def test_unsorted_wavelengths_are_refused_not_fitted(tmp_path, capsys):
     path = write_csv(tmp_path / "albedo.csv", albedo_rows()[::-1])
     code, err = run(["unmix", path, "--mix", MIX], capsys)
@@ -232,9 +245,11 @@ def test_json_over_a_material_yaml_file_is_refused(tmp_path, albedo_csv, capsys)
     assert yml.read_bytes() == before
 
 
-def test_json_is_written_whole_or_not_at_all(swatches, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("baseline", [False, True])
+def test_json_is_written_whole_or_not_at_all(swatches, albedo_csv, tmp_path, capsys,
+                                             monkeypatch, baseline):
     """A write that fails half way (here: the rename into place) leaves the previous file as
-    it was and no temporary file beside it."""
+    it was and no temporary file beside it, with and without --baseline."""
     import os
 
     out = tmp_path / "result.json"
@@ -244,8 +259,10 @@ def test_json_is_written_whole_or_not_at_all(swatches, tmp_path, capsys, monkeyp
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(os, "replace", failing)
-    code, err = run(["unmix", swatches["mix"], "--mix", MIX, "--baseline", "hapke",
-                     "--endmembers", swatches["ends"], "--json", str(out)], capsys)
+    argv = (["unmix", swatches["mix"], "--mix", MIX, "--baseline", "hapke", "--endmembers",
+             swatches["ends"]] if baseline else
+            ["unmix", albedo_csv, "--mix", MIX, "--starts", "1"])
+    code, err = run(argv + ["--json", str(out)], capsys)
     assert code == 2 and "No space left on device" in err, err
     assert out.read_text() == "previous\n"
     assert sorted(p.name for p in tmp_path.iterdir() if "result" in p.name) == ["result.json"]
