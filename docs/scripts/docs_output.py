@@ -5,6 +5,7 @@ that running a script to look at its output does not change tracked files)."""
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
@@ -35,16 +36,36 @@ def docs_parser(doc: str, committed: Path, what: str,
 
 
 def output_dir(args: argparse.Namespace, committed: Path) -> Path:
-    """The folder to write to (created), as chosen by :func:`add_output_options`."""
+    """The folder to write to (created), as chosen by :func:`add_output_options`, checked
+    before any work (:func:`mitsuba_powder.outputs.check_output_folder`: not a file, writable);
+    a bad one is an error line and exit code 2, as the parser's."""
+    from mitsuba_powder.outputs import OutputError, check_output_folder
+
     if args.refresh_docs:
         out = committed
     elif args.out is not None:
         out = Path(args.out)
     else:
         out = Path(tempfile.mkdtemp(prefix="mitsuba-powder-docs-"))
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        check_output_folder(out, "--out")
+    except OutputError as exc:
+        print(f"{Path(sys.argv[0]).name}: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     print(f"writing to {out}" + (" (the committed docs)" if args.refresh_docs else ""))
     return out
+
+
+def write_output(out: Path, name: str, data: str | bytes, finite=None) -> Path:
+    """``out / name`` written whole or not at all (:func:`mitsuba_powder.outputs.write_whole`);
+    with ``finite`` (numbers, nested lists or dicts of them: what ``data`` shows), refused
+    when any of them is NaN or infinite (:func:`mitsuba_powder.outputs.check_finite_json`):
+    nothing is written then."""
+    from mitsuba_powder.outputs import check_finite_json, write_whole
+
+    if finite is not None:
+        check_finite_json(finite, str(out / name))
+    return write_whole(out / name, data, "--out")
 
 
 def render_size(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[int, int]:

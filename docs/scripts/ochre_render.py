@@ -15,17 +15,18 @@ parameters), built with ``mitsuba_powder.plugin.grains.mixture_properties``.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
-from docs_output import add_output_options, output_dir, render_size
+from docs_output import add_output_options, output_dir, render_size, write_output
 from ochre_series import BRDF, HEMATITE_RADII, MASS
 
 from mitsuba_powder.plugin.grains import mixture_properties
-from mitsuba_powder.variants import use_variant
+from mitsuba_powder.variants import check_variant, use_variant
 
 ROOT = Path(__file__).resolve().parents[2]
 #: the host and its grain radius (um)
@@ -94,6 +95,10 @@ def main() -> None:
     add_output_options(parser, ROOT / "docs" / "figures", "ochre_render.png and .json")
     args = parser.parse_args()
     width, height = render_size(parser, args)
+    try:
+        check_variant(args.variant)
+    except ValueError as exc:
+        parser.error(f"--variant: {exc}")
     out = output_dir(args, ROOT / "docs" / "figures")
     import matplotlib
 
@@ -106,7 +111,11 @@ def main() -> None:
         image = mi.render(mi.load_dict(scene(width, height, args.spp)))
         bitmap = mi.Bitmap(image).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32,
                                           srgb_gamma=True)
-        img = np.clip(np.array(bitmap), 0.0, 1.0)
+        img = np.array(bitmap)
+    if not np.all(np.isfinite(img)):
+        parser.exit(2, f"{parser.prog}: error: the render holds {np.sum(~np.isfinite(img))} "
+                       "NaN or infinite pixel values (a plugin bug); nothing was written\n")
+    img = np.clip(img, 0.0, 1.0)
     seconds = time.perf_counter() - t0
     fig, ax = plt.subplots(figsize=(width / 100, height / 100 + 0.4), dpi=100)
     ax.imshow(img)
@@ -121,12 +130,15 @@ def main() -> None:
     ax.set_axis_off()
     ax.set_title(f"hematite in kaolinite, % by mass; {args.variant}, {args.spp} spp, "
                  f"{width}x{height}, {seconds:.1f} s", fontsize=9)
-    fig.savefig(out / "ochre_render.png", bbox_inches="tight")
+    png = io.BytesIO()
+    fig.savefig(png, format="png", bbox_inches="tight")
     plt.close(fig)
     meta = {"variant": args.variant, "spp": args.spp, "width": width, "height": height,
             "seconds_load_and_render": round(seconds, 2),
             "machine": f"{platform.machine()}, {platform.system()}", "date": time.strftime("%F")}
-    (out / "ochre_render.json").write_text(json.dumps(meta, indent=1))
+    # both made before either is written; each written whole
+    write_output(out, "ochre_render.png", png.getvalue())
+    write_output(out, "ochre_render.json", json.dumps(meta, indent=1), finite=meta)
     print(meta)
 
 

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from docs_output import docs_parser, output_dir
+from docs_output import docs_parser, output_dir, write_output
 
 from mitsuba_powder.fitting import mixing_rules as rules
 from mitsuba_powder.fitting.unmix_baselines import (
@@ -116,6 +116,7 @@ def main() -> None:
              "| abs. error, largest | RMS reflectance | chi2 / dof | s |",
              "|---|---|---|---|---|---|---|---|"]
     notes: list[str] = []
+    numbers: list = []  # every number of the table, checked finite before it is written
     start_all = time.perf_counter()
     for name, parts in MIXTURES[:1] if args.quick else MIXTURES:
         truth = np.array([f for _, f, _ in parts])
@@ -129,6 +130,8 @@ def main() -> None:
                 shown = ", ".join(f"{m} {f:.3f} +- {e:.3f}" for m, f, e in zip(
                     u.materials, u.mass_fractions, u.mass_fraction_errors))
                 err = float(np.max(np.abs(u.mass_fractions - truth)))
+                numbers.append([u.mass_fractions.tolist(), u.mass_fraction_errors.tolist(), err,
+                              u.rms, u.chi2 / u.dof])
                 lines.append(f"| {name} ({', '.join(f'{f:g}' for f in truth)}) | {rule} | "
                              f"{u.method} | {shown} | {err:.3f} | {u.rms:.4f} | "
                              f"{u.chi2 / u.dof:.2f} | {seconds:.1f} |")
@@ -143,7 +146,7 @@ def main() -> None:
                  f"with noise of standard deviation {SIGMA:g} (seed {SEED}); plugin properties "
                  f"{PROPERTIES}; start: equal mass fractions. Endmembers and tints "
                  f"({100 * TINT:g} % by mass in the host) by the powder plugin (synthetic).")
-    (out / "unmix_baselines_table.md").write_text("\n".join(lines) + "\n")
+    write_output(out, "unmix_baselines_table.md", "\n".join(lines) + "\n", finite=numbers)
     print("\n".join(lines))
 
 

@@ -1,11 +1,12 @@
-"""Argument checks shared by the package: one range check (:func:`check_range`) and one wording
-for a value out of its valid range (:func:`out_of_range`)."""
+"""Argument checks shared by the package: one range check (:func:`check_range`; of every value
+of an array: :func:`check_each`) and one wording for a value out of its valid range
+(:func:`out_of_range`)."""
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["check_range", "interval_text", "out_of_range"]
+__all__ = ["check_each", "check_range", "interval_text", "out_of_range"]
 
 
 def interval_text(lower: float, upper: float, closed: str = "[)") -> str:
@@ -58,3 +59,16 @@ def check_range(name: str, value, lower: float, upper: float = math.inf, closed:
         raise ValueError(out_of_range(f"{name} = {shown}", interval_text(lower, upper, closed),
                                       note))
     return v
+
+
+def check_each(name: str, values, lower: float, upper: float = math.inf, closed: str = "[)",
+               where=None) -> None:
+    """:func:`check_range` of every value of ``values`` (e.g. a spectrum); the first out of
+    range (NaN never is in range) is named ``<name><where[k]>``, e.g. ``"sigma at 500 nm"``.
+
+    Args:
+        where: per value, the text that says which one it is (default ``"[k]"``).
+    """
+    for k, value in enumerate(values):
+        check_range(f"{name}{where[k] if where is not None else f'[{k}]'}", float(value), lower,
+                    upper, closed)

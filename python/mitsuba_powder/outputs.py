@@ -1,7 +1,8 @@
 """Where a command writes: only under the output it was given, never over one of its inputs.
 
 Every file the package writes goes through :func:`output_path` (a file inside an output folder)
-or :func:`output_file` (an output file the caller named). Both check the target against the
+or :func:`output_file` (an output file the caller named; :func:`write_whole` and
+:func:`write_json` write one whole or not at all). Both check the target against the
 *inputs* of the running command: within :func:`guarding_inputs` (the command line opens one
 around each command; :func:`mitsuba_powder.rendering.render.render_scene` and
 :func:`mitsuba_powder.rti.maps.relight_files` open their own), every file the package's loaders
@@ -26,14 +27,16 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import uuid
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 
 __all__ = ["INCOMPLETE", "MANIFEST", "STAGING", "OutputError", "check_complete",
-           "check_finite_json", "final_path", "guarding_inputs", "note_input", "output_file",
-           "output_names", "output_path", "protected_inputs", "staged_output"]
+           "check_finite_json", "check_output_folder", "final_path", "guarding_inputs",
+           "note_input", "output_file", "output_names", "output_path", "protected_inputs",
+           "staged_output", "write_json", "write_whole"]
 
 _INPUTS: ContextVar[set[Path] | None] = ContextVar("mitsuba_powder_inputs", default=None)
 #: {resolved output folder: its staging folder} of the running command (:func:`staged_output`)
@@ -125,6 +128,39 @@ def output_file(path: str | Path, what: str = "output") -> Path:
     _check_not_input(target, p, what)
     p.parent.mkdir(parents=True, exist_ok=True)
     return p
+
+
+def write_whole(path: str | Path, data: str | bytes, what: str = "output") -> Path:
+    """Write the output file ``path`` whole or not at all: checked by :func:`output_file`
+    when it is written (so against every input read by then), ``data`` (text as UTF-8, or
+    bytes) written to a temporary file beside it and renamed over it; a failed or interrupted
+    write leaves the previous file as it was.
+
+    Raises:
+        OutputError: as :func:`output_file`.
+    """
+    p = output_file(path, what)
+    part = p.with_name(f".{p.name}.{uuid.uuid4().hex[:8]}.part")
+    try:
+        with open(part, "wb") as f:
+            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(part, p)
+    finally:
+        part.unlink(missing_ok=True)
+    return p
+
+
+def write_json(path: str | Path, obj, what: str = "output") -> Path:
+    """``obj`` as a JSON file (indent 1) through :func:`write_whole`, refused when it holds
+    NaN or Infinity (:func:`check_finite_json`): nothing is written then.
+
+    Raises:
+        OutputError: a non-finite value, or as :func:`output_file`.
+    """
+    check_finite_json(obj, f"{what} {path}")
+    return write_whole(path, json.dumps(obj, indent=1, allow_nan=False) + "\n", what)
 
 
 def _is_safe_relative(name: str) -> bool:
@@ -252,9 +288,13 @@ def check_finite_json(obj, name: str) -> None:
                           "degenerate; nothing was written")
 
 
-def _check_output_folder(out: str | Path, what: str) -> Path:
+def check_output_folder(out: str | Path, what: str = "--out") -> Path:
     """An output folder checked before any work: not a file, not an input, creatable and
-    writable; created."""
+    writable; created.
+
+    Raises:
+        OutputError: naming ``what``, the folder and what is wrong.
+    """
     base = Path(out).expanduser()
     if base.exists() and not base.is_dir():
         raise OutputError(f"{what} {out} is a file; give a folder")
@@ -289,7 +329,7 @@ def staged_output(out: str | Path, what: str = "--out", command: str = "output"
         OutputError: ``out`` is a file, an input of the command, or not writable.
     """
     created = not Path(out).expanduser().exists()
-    base = _check_output_folder(out, what)
+    base = check_output_folder(out, what)
     root = _resolved(base)
     staging = base / STAGING
     _remove_tree(staging)

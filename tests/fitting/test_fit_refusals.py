@@ -62,6 +62,26 @@ def test_fit_refuses_a_fixed_value_no_powder_has(tmp_path, capsys, setting, frag
             out, *fragments)
 
 
+@pytest.mark.parametrize("options,fragment", [
+    (["--seed", "-1"], "--seed = -1 is out of range; valid range is [0, 4294967295]"),
+    (["--seed", str(2**40)], f"--seed = {2**40} is out of range"),
+    (["--starts", "0"], "--starts = 0 is out of range; valid range is [1, inf)"),
+    (["--global", "mlsl"], "--global = 'mlsl': the global stages mlsl and crs2 use nlopt, "
+                           "which is not installed"),
+])
+def test_fit_refuses_bad_search_options_before_the_work(tmp_path, capsys, monkeypatch, options,
+                                                        fragment):
+    """The global stage's options named as the command line spells them (a seed past 2^32
+    was nlopt's OverflowError traceback, a missing nlopt an ImportError traceback)."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "nlopt", None)
+    data = write_csv(tmp_path / "d.csv", ROWS)
+    out = tmp_path / "fit"
+    refused(capsys, ["fit", str(data), "--free", "g", "--out", str(out), *options], out,
+            fragment)
+
+
 def test_fit_refuses_more_free_variables_than_geometries(tmp_path, capsys):
     """Two rows, six free parameters: refused (it used to exit 0 with uncertainties 0);
     replicated rows count once."""

@@ -206,7 +206,7 @@ def test_unmix_cli_with_a_baseline(tmp_path, capsys):
     assert main(mix + ["--baseline", "km"]) == 2
     assert "--baseline needs --endmembers" in capsys.readouterr().err
     assert main(mix + ["--endmembers", str(tmp_path / "red.csv")]) == 2
-    assert "--endmembers need --baseline" in capsys.readouterr().err
+    assert "--endmembers needs --baseline" in capsys.readouterr().err
 
 
 def test_km_constants_of_a_tint_as_white_as_the_white():
@@ -224,3 +224,29 @@ def test_a_fraction_at_the_edge_is_reported():
                  [("kaolinite", 0.5, 1.0), ("hematite", 0.5, 0.1)])
     assert u.mass_fractions[0] < 1e-4
     assert any("the fraction of kaolinite is below 0.0001" in w for w in u.warnings)
+
+
+def test_a_singular_fit_reports_without_a_numpy_warning():
+    """Three identical masstones: the mixture does not depend on the fractions, the Jacobian
+    is singular; the result says so (infinite or NaN uncertainties, which the command line
+    refuses to report with exit 0), without numpy's RuntimeWarning on the way."""
+    import warnings
+
+    e = endmembers()
+    parts = [("kaolinite", 0.4, 1.0), ("hematite", 0.3, 0.1), ("magnetite", 0.3, 0.3)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        u = unmix_km(WL, 0.9 * e[0], np.full(len(WL), 1e-3), np.array([e[0]] * 3), parts)
+    assert "the Jacobian is singular" in u.warnings[0]
+    assert not np.all(np.isfinite(u.mass_fraction_errors))
+
+
+def test_bad_spectra_name_the_wavelength_and_the_value():
+    e = endmembers()[:2]
+    parts = [("kaolinite", 0.5, 1.0), ("hematite", 0.5, 0.1)]
+    sigma = np.full(len(WL), 1e-3)
+    with pytest.raises(ValueError, match=r"sigma at 440 nm = -0.001 is out of range; valid "
+                                         r"range is \(0, inf\)"):
+        unmix_hapke(WL, e[0], np.where(WL == 440, -1e-3, sigma), e, parts)
+    with pytest.raises(ValueError, match=r"the reflectance at 400 nm = nan is out of range"):
+        unmix_km(WL, np.where(WL == 400, np.nan, e[0]), sigma, e, parts)

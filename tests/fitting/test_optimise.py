@@ -10,6 +10,7 @@ from mitsuba_powder.fitting.optimise import (
     ParamSpec,
     batch_levenberg_marquardt,
     check_global_stage,
+    check_search,
     distinct_best,
     finite_difference_jacobian,
     multistart,
@@ -192,3 +193,75 @@ def test_without_nlopt_the_stage_says_how_to_install_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "nlopt", None)
     with pytest.raises(ImportError, match=r"pip install 'mitsuba-powder\[nlopt\]'.*sobol"):
         nlopt_search(TwoExponentials(), "crs2", 10, seed=0)
+
+
+def test_check_search_names_the_option_the_value_and_the_range(monkeypatch):
+    import sys
+
+    flags = ("--global", "--starts", "--seed")
+    with pytest.raises(ValueError, match=r"--seed = 4294967296 is out of range; valid range is "
+                                         r"\[0, 4294967295\]"):
+        check_search("sobol", 1, 2**32, flags)
+    with pytest.raises(ValueError, match=r"seed = -1 is out of range"):
+        check_search("sobol", 1, -1)
+    with pytest.raises(ValueError, match=r"seed = 1.5 is not an integer"):
+        check_search("sobol", 1, 1.5)
+    with pytest.raises(ValueError, match=r"--starts = 0 is out of range; valid range is "
+                                         r"\[1, inf\)"):
+        check_search("sobol", 0, 0, flags)
+    check_search("sobol", 1, 2**32 - 1)
+    monkeypatch.setitem(sys.modules, "nlopt", None)
+    check_search("sobol", 1, 0)  # the Sobol stage needs no nlopt
+    with pytest.raises(ValueError, match=r"--global = 'crs2': the global stages mlsl and crs2 "
+                                         r"use nlopt, which is not installed"):
+        check_search("crs2", 1, 0, flags)
+
+
+def test_an_nlopt_stage_that_stops_before_any_point_is_a_clear_error(monkeypatch):
+    """nlopt failing before its first evaluation (a roundoff failure at the start) was
+    ``min() arg is an empty sequence``."""
+    import nlopt
+
+    from mitsuba_powder.fitting import optimise
+
+    real = optimise._nlopt_optimiser
+
+    class Stopping:
+        def __init__(self, opt):
+            self.opt = opt
+
+        def __getattr__(self, name):
+            return getattr(self.opt, name)
+
+        def optimize(self, y0):
+            raise nlopt.RoundoffLimited("roundoff")
+
+    monkeypatch.setattr(optimise, "_nlopt_optimiser", lambda *a: Stopping(real(*a)))
+    with pytest.raises(RuntimeError, match=r"the global stage crs2 \(nlopt\) stopped before "
+                                           r"evaluating a point \(nlopt stopped early: "
+                                           r"RoundoffLimited roundoff\)"):
+        nlopt_search(TwoExponentials(), "crs2", 10, seed=0)
+
+
+class OutsideItsDomain(TwoExponentials):
+    """TwoExponentials whose model refuses a1 > 1.5 (as the plugin refuses a radius outside
+    its range): an error, not a cost."""
+
+    def residuals(self, y):
+        if np.any(np.atleast_2d(y)[:, 0] > 1.5):
+            raise ValueError("a1 outside the model's domain")
+        return super().residuals(y)
+
+    def jacobian(self, y):
+        if np.any(np.atleast_2d(y)[:, 0] > 1.5):
+            raise ValueError("a1 outside the model's domain")
+        return super().jacobian(y)
+
+
+@pytest.mark.parametrize("method", ["crs2", "mlsl"])
+def test_an_error_of_the_model_reaches_the_caller_as_it_is(method):
+    """CRS2 went on evaluating with the model's error pending, and Python failed with a
+    SystemError (a traceback from the command line)."""
+    for seed in range(3):
+        with pytest.raises(ValueError, match="a1 outside the model's domain"):
+            nlopt_search(OutsideItsDomain(), method, 300, seed=seed)

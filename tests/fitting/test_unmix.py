@@ -113,8 +113,10 @@ def test_two_white_hosts_cannot_be_told_apart():
 
 @pytest.mark.parametrize("kwargs,fragment", [
     ({"parts": [("hematite", 1.0, 0.1)]}, "unmixing 1 populations; valid range is [2, 4]"),
-    ({"sigma": np.zeros(26)}, "sigma must be finite and > 0"),
-    ({"albedo": np.full(26, 1.5)}, "albedo must be in [0, 1]"),
+    ({"sigma": np.zeros(26)}, "sigma at 360 nm = 0.0 is out of range; valid range is (0, inf)"),
+    ({"albedo": np.full(26, 1.5)}, "the albedo at 360 nm = 1.5 is out of range; valid range is "
+                                   "[0, 1]"),
+    ({"albedo": np.r_[np.full(3, 0.5), np.nan, np.full(22, 0.5)]}, "the albedo at 420 nm = nan"),
     ({"parts": [("kaolinite", 0.0, 1.0), ("hematite", 1.0, 0.1)]}, "needs a start fraction > 0"),
     ({"parts": [("kaolinite", 0.5, 1.0), ("hematite", 0.4, 0.1)]}, "sum to 0.9"),
 ])

@@ -128,3 +128,7 @@ def test_cli_writes_a_spectrum_a_scene_loads(tmp_path, capsys):
     assert main(["albedo", "--reflectance", str(tmp_path / "bad.csv"), "--out",
                  str(tmp_path / "d.spd")]) == 2
     assert "line 1: 3 fields" in capsys.readouterr().err
+    # a --set without '=': an error line and exit code 2 (was SystemExit 1 naming -D)
+    assert main(["albedo", "--srgb", "0.7,0.35,0.25", "--set", "tau_o", "--out",
+                 str(tmp_path / "e.spd")]) == 2
+    assert "--set 'tau_o': expected NAME=VALUE" in capsys.readouterr().err

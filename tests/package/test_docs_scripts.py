@@ -152,3 +152,67 @@ def test_ochre_render_script_small(tmp_path):
     meta = json.loads((tmp_path / "ochre_render.json").read_text())
     assert meta["variant"] == "llvm_ad_spectral" and meta["width"] == 96
     assert (tmp_path / "ochre_render.png").stat().st_size > 5000
+
+
+@pytest.mark.parametrize("script,options", [("unmix_baselines.py", ["--quick"]),
+                                            ("ochre_render.py", ["--spp", "1", "--res", "8x4"])])
+def test_an_out_that_is_a_file_is_an_error_line(tmp_path, script, options):
+    """--out naming a file: one error line and exit code 2 before any work, the file kept."""
+    target = tmp_path / "notes.txt"
+    target.write_text("mine\n")
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / script), *options,
+                           "--out", str(target)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert f"error: --out {target} is a file; give a folder" in proc.stderr
+    assert "Traceback" not in proc.stderr and target.read_text() == "mine\n"
+
+
+def test_ochre_render_refuses_an_unknown_variant_before_any_work(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "ochre_render.py"),
+                           "--variant", "bogus", "--out", str(out)], capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 2 and "--variant: variant = 'bogus' is not available" in \
+        proc.stderr, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and not out.exists()
+
+
+def test_ochre_render_writes_nothing_from_a_nan_render(tmp_path, monkeypatch, capsys):
+    """A render holding NaN (a plugin bug) is an error (exit 2), not a figure."""
+    import runpy
+
+    import mitsuba as mi
+
+    def nan_render(scene, *args, **kwargs):
+        image = np.full((4, 8, 3), 0.5, dtype=np.float32)
+        image[1, 2, 0] = np.nan
+        return mi.TensorXf(image)
+
+    monkeypatch.setattr(mi, "render", nan_render)
+    monkeypatch.setattr(sys, "argv", ["ochre_render.py", "--spp", "1", "--res", "8x4",
+                                      "--out", str(tmp_path)])
+    monkeypatch.syspath_prepend(str(ROOT / "docs" / "scripts"))
+    with pytest.raises(SystemExit) as info:
+        runpy.run_path(str(ROOT / "docs" / "scripts" / "ochre_render.py"), run_name="__main__")
+    assert info.value.code == 2
+    assert "the render holds 1 NaN or infinite pixel values" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_write_output_refuses_non_finite_numbers(tmp_path):
+    """docs_output.write_output: a table whose numbers hold NaN is not written (the previous
+    file is kept); a finite one is written whole."""
+    sys.path.insert(0, str(ROOT / "docs" / "scripts"))
+    try:
+        from docs_output import write_output
+    finally:
+        sys.path.pop(0)
+    from mitsuba_powder.outputs import OutputError
+
+    (tmp_path / "table.md").write_text("previous\n")
+    with pytest.raises(OutputError, match=r"table.md would hold NaN or Infinity at \[1\]\[0\]"):
+        write_output(tmp_path, "table.md", "| nan |\n", finite=[[0.1], [float("nan")]])
+    assert (tmp_path / "table.md").read_text() == "previous\n"
+    write_output(tmp_path, "table.md", "| 0.1 |\n", finite=[[0.1]])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["table.md"]
+    assert (tmp_path / "table.md").read_text() == "| 0.1 |\n"

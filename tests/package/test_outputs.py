@@ -25,6 +25,8 @@ from mitsuba_powder.outputs import (
     output_file,
     output_names,
     output_path,
+    write_json,
+    write_whole,
 )
 from mitsuba_powder.variants import use_variant
 
@@ -86,6 +88,33 @@ def test_output_path_refuses_escapes_and_inputs(tmp_path):
     assert data.read_text() == "1\n"
     # outside a guard nothing is protected (the Python API's own writers)
     assert output_file(data) == data
+
+
+def test_write_json_is_whole_or_nothing(tmp_path, monkeypatch):
+    """A NaN, an input named as the output or a failed rename leave the previous file as it
+    was, and no temporary file beside it."""
+    import os
+
+    out = tmp_path / "r.json"
+    out.write_text("previous\n")
+    with pytest.raises(OutputError, match=r"r.json would hold NaN or Infinity at a\[1\]"):
+        write_json(out, {"a": [1.0, float("nan")]}, "--json")
+    data = tmp_path / "data.csv"
+    data.write_text("1\n")
+    with guarding_inputs(data):
+        with pytest.raises(OutputError, match="--json .*data.csv is an input file"):
+            write_whole(data, "x", "--json")
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(os, "replace", full)
+        with pytest.raises(OSError, match="No space"):
+            write_json(out, {"a": 1.0})
+    assert out.read_text() == "previous\n" and data.read_text() == "1\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data.csv", "r.json"]
+    assert write_json(out, {"a": [1.5]}) == out and out.read_text() == '{\n "a": [\n  1.5\n ]\n}\n'
 
 
 # ------------------------------------------------------------------ RTI commands

@@ -12,7 +12,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from contextlib import nullcontext
 
     from ..fitting.figure_process import FigureProcess
+    from ..fitting.optimise import check_search
 
+    check_search(args.global_stage, args.starts, args.seed, ("--global", "--starts", "--seed"))
     data, held_out = _fit_data(args)
     # started now, the drawing process imports matplotlib while the optimiser runs
     with FigureProcess() if args.figures != "none" else nullcontext() as process:

@@ -197,8 +197,9 @@ def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--by", default="volume", choices=["mass", "volume"],
                    help="how the --mix start fractions are given (default volume)")
     p.add_argument("--free-radii", action="store_true", help="fit the radii too")
-    _add_global_options(p)
-    p.add_argument("--seed", type=int, default=0)
+    _add_global_options(p, baseline=True)
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the Sobol scrambling or of nlopt, in [0, 2^32) (default 0)")
     p.add_argument("--baseline", default=None, choices=["hapke", "km", "all"],
                    help="read the CSV as a reflectance spectrum (wavelength, reflectance, its "
                         "standard uncertainty) and unmix it with Hapke's intimate-mixture rule, "
@@ -208,29 +209,34 @@ def _add_unmix_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--endmembers", default=None, metavar="A.csv,B.csv,...",
                    help="with --baseline: each pure material's reflectance (wavelength, "
                         "reflectance), in the order of --mix")
-    p.add_argument("--tints", default=None, metavar="T2.csv:10%%,...",
+    p.add_argument("--tints", default=None, metavar="T2.csv:10%,...",
                    help="with --baseline km or all: a tint of each pigment 2..n with the white "
                         "(population 1) and the pigment's mass fraction in it (default: S = 1 "
                         "for every pigment)")
-    p.add_argument("--geometry", default="0:d",
-                   help="with --baseline: the reflectance's geometry, 0:d or THETA_I:THETA_O")
+    p.add_argument("--geometry", default=None,
+                   help="with --baseline: the reflectance's geometry, 0:d or THETA_I:THETA_O "
+                        "(default 0:d)")
     _add_set_option(p, "with --baseline all: a plugin property of the powder row, e.g. "
                        "--set tau_o=2 (repeatable)")
     p.add_argument("--json", default=None, help="write the result as JSON")
     p.set_defaults(func=_cmd_unmix)
 
 
-def _add_global_options(p: argparse.ArgumentParser) -> None:
+def _add_global_options(p: argparse.ArgumentParser, baseline: bool = False) -> None:
     """``--global`` and ``--starts`` of ``fit`` and ``unmix`` (docs/fitting.md, "The global
-    stage")."""
-    p.add_argument("--global", dest="global_stage", choices=GLOBAL_STAGES, default="sobol",
+    stage"); ``baseline``: unmix's, which --baseline refuses (their defaults are then left
+    unset, so that the command sees whether they were given)."""
+    note = "; not with --baseline" if baseline else ""
+    p.add_argument("--global", dest="global_stage", choices=GLOBAL_STAGES,
+                   default=None if baseline else "sobol",
                    help="the global stage: sobol (Sobol starts, batched Levenberg-Marquardt; "
                         "the default), mlsl or crs2 (nlopt, then the same Levenberg-Marquardt "
-                        "steps; needs nlopt)")
-    p.add_argument("--starts", type=int, default=DEFAULT_STARTS,
+                        f"steps; needs nlopt){note}")
+    p.add_argument("--starts", type=int, default=None if baseline else DEFAULT_STARTS,
                    help="starts of the global phase (Sobol design; with the radius free, on a "
                         f"log grid of radii); mlsl and crs2: {NLOPT_EVALUATIONS_PER_START} "
-                        "model evaluations per start")
+                        "model evaluations per start"
+                        + (f" (>= 1, default {DEFAULT_STARTS}){note}" if baseline else ""))
 
 
 def _add_colour_parser(sub: argparse._SubParsersAction) -> None:

@@ -53,7 +53,7 @@ from .optimise import (
     NLOPT_EVALUATIONS_PER_START,
     MultistartResult,
     check_determined,
-    check_global_stage,
+    check_search,
     multistart,
     nlopt_search,
     sobol_starts,
@@ -391,11 +391,11 @@ def fit(data: Measurements, free: list[str] | None = None, fixed: dict | None = 
 
     Raises:
         ValueError: unknown, repeated or inconsistent parameter names; starts or polish < 1;
-            an unknown regime or global stage.
-        ImportError: ``mlsl`` or ``crs2`` without nlopt installed.
+            a seed outside [0, 2^32); an unknown regime or global stage, or ``mlsl`` or
+            ``crs2`` without nlopt installed
+            (:func:`~mitsuba_powder.fitting.optimise.check_search`).
     """
-    check_global_stage(global_stage)
-    check_range("starts", starts, 1)
+    check_search(global_stage, starts, seed)
     check_range("polish", polish, 1)
     if len(data) == 0:
         raise ValueError("no measurements to fit")

@@ -36,7 +36,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .._checks import check_range
+from .._checks import check_range, out_of_range
 
 #: Relative cost difference under which two starts "reach the same loss"
 AGREEMENT = 0.01
@@ -416,6 +416,36 @@ def check_global_stage(name: str, option: str = "global_stage") -> str:
     return name
 
 
+#: Seeds of the global stages lie in [0, SEED_LIMIT): nlopt.srand takes an unsigned 32-bit
+#: integer on every platform (a C ``unsigned long``), and the Sobol scrambling the same seeds
+SEED_LIMIT = 2**32
+
+
+def check_search(global_stage: str, starts, seed,
+                 options: tuple[str, str, str] = ("global_stage", "starts", "seed")) -> None:
+    """The options of a global stage, checked before any work: a known stage
+    (:func:`check_global_stage`) whose module is installed (nlopt for ``mlsl`` and ``crs2``),
+    ``starts >= 1`` and an integer ``seed`` in [0, :data:`SEED_LIMIT`); each error names the
+    option (``options``: the names of the three, e.g. ``("--global", "--starts", "--seed")``),
+    its value and the valid values.
+
+    Raises:
+        ValueError: any of them (also a missing nlopt, which :func:`nlopt_search` reports as
+            an ImportError once the work has started).
+    """
+    check_global_stage(global_stage, options[0])
+    if global_stage != "sobol":
+        try:
+            _nlopt()
+        except ImportError as exc:
+            raise ValueError(f"{options[0]} = {global_stage!r}: {exc}") from None
+    check_range(options[1], starts, 1)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"{options[2]} = {seed!r} is not an integer")
+    if not 0 <= seed < SEED_LIMIT:
+        raise ValueError(out_of_range(f"{options[2]} = {seed}", f"[0, {SEED_LIMIT - 1}]"))
+
+
 def _nlopt():
     """The nlopt module, or an error saying how to get it."""
     try:
@@ -444,18 +474,29 @@ def _nlopt_optimiser(nlopt, method: str, p: int, problem: BatchProblem):
     return opt
 
 
-def _recording_objective(problem: BatchProblem, points: list[np.ndarray], costs: list[float]
+def _recording_objective(problem: BatchProblem, points: list[np.ndarray], costs: list[float],
+                         failed: list[BaseException], stop: Callable[[], None]
                          ) -> Callable[[np.ndarray, np.ndarray], float]:
     """nlopt's objective ``(y, grad) -> cost`` of ``problem`` (the sum of squared residuals,
     its gradient filled when nlopt asks), appending each point and its cost to ``points`` and
-    ``costs``; a non-finite cost (outside the model's domain) is 1e300, never a NaN."""
+    ``costs``; a non-finite cost (outside the model's domain) is 1e300, never a NaN. An error
+    of the problem is not raised through nlopt (its CRS2 goes on evaluating with the error
+    pending, and Python then fails with a SystemError): it is kept in ``failed``, nlopt is
+    stopped (``stop``) and the cost is 1e300 until it returns; :func:`nlopt_search` raises it."""
     def objective(y: np.ndarray, grad: np.ndarray) -> float:
-        if grad.size:
-            r, jac = problem.jacobian(y[None])
-            r = r[0]
-            grad[:] = 2.0 * (jac[0].T @ r)
-        else:
-            r = problem.residuals(y[None])[0]
+        if failed:
+            return 1e300
+        try:
+            if grad.size:
+                r, jac = problem.jacobian(y[None])
+                r = r[0]
+                grad[:] = 2.0 * (jac[0].T @ r)
+            else:
+                r = problem.residuals(y[None])[0]
+        except BaseException as error:  # (Ctrl-C too) raised by nlopt_search once nlopt returns
+            failed.append(error)
+            stop()
+            return 1e300
         c = float(r @ r)
         if not math.isfinite(c):
             c = 1e300  # outside the model's domain: the worst cost, never a NaN to nlopt
@@ -492,19 +533,24 @@ def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed:
     t0 = time.perf_counter()
     points: list[np.ndarray] = []
     costs: list[float] = []
-    objective = _recording_objective(problem, points, costs)
+    failed: list[BaseException] = []
     opt = _nlopt_optimiser(nlopt, method, len(problem.lower), problem)
-    opt.set_min_objective(objective)
+    opt.set_min_objective(_recording_objective(problem, points, costs, failed, opt.force_stop))
     opt.set_maxeval(int(max_evaluations))
     nlopt.srand(int(seed))
     y0 = (problem.lower + problem.upper) / 2.0 if start is None else np.asarray(start, float)
     stopped = ""
     try:
         opt.optimize(np.clip(y0, problem.lower, problem.upper))
-    except (nlopt.RoundoffLimited, RuntimeError) as error:
-        # nlopt's own failures (not the objective's errors, which propagate as they are):
+    except (nlopt.RoundoffLimited, nlopt.ForcedStop, RuntimeError) as error:
+        # nlopt's own failures (not the objective's errors, raised below as they are):
         # the points so far stand, the LM steps and the polish follow
         stopped = f" (nlopt stopped early: {type(error).__name__} {error})"
+    if failed:
+        raise failed[0]
+    if not points:
+        raise RuntimeError(f"the global stage {method} (nlopt) stopped before evaluating a "
+                           f"point{stopped}; try --global sobol")
     stages = [f"global: nlopt {method} ({opt.get_algorithm_name()}), {len(points)} "
               f"evaluations, best cost {min(costs):.6g}{stopped}"]
     if progress:

@@ -23,20 +23,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import _optics
-from .._checks import check_range
+from .._checks import check_each, check_range
 from ..plugin import registry
 from ..plugin.grains import GrainOptics, volume_fractions
 from .optimise import (
     DEFAULT_STARTS,
     NLOPT_EVALUATIONS_PER_START,
     MultistartResult,
-    check_global_stage,
+    check_search,
     multistart,
     nlopt_search,
     sobol_starts,
 )
+from .variables import FITTABLE
 
-#: a fitted radius (um) stays within this factor of its start
+#: a fitted radius (um) stays within this factor of its start, and within the radii a
+#: goniometric fit frees (:data:`~mitsuba_powder.fitting.variables.FITTABLE`, inside the
+#: plugin's Mie range at 360-1000 nm)
 RADIUS_FACTOR = 10.0
 #: the amounts of populations 2..n relative to population 1 stay within [1/this, this]
 AMOUNT_LIMIT = 1e6
@@ -99,10 +102,9 @@ def _check_inputs(wl: np.ndarray, rho: np.ndarray, sig: np.ndarray, parts: list)
     if not (len(wl) == len(rho) == len(sig)):
         raise ValueError(f"wavelengths, albedo and sigma differ in length ({len(wl)}, "
                          f"{len(rho)}, {len(sig)})")
-    if not np.all(np.isfinite(sig) & (sig > 0)):
-        raise ValueError("sigma must be finite and > 0 at every wavelength")
-    if not np.all(np.isfinite(rho) & (rho >= 0) & (rho <= 1)):
-        raise ValueError("the albedo must be in [0, 1] at every wavelength")
+    at = [f" at {w:g} nm" for w in wl]
+    check_each("sigma", sig, 0.0, math.inf, "()", at)
+    check_each("the albedo", rho, 0.0, 1.0, "[]", at)
 
 
 def _start_amounts(parts: list, by: str, free_radii: bool, wavelengths: int) -> np.ndarray:
@@ -165,8 +167,9 @@ class _Residuals:
         self.lower = np.full(n - 1 + (n if model.free_radii else 0), -math.log(AMOUNT_LIMIT))
         self.upper = -self.lower
         if model.free_radii:
-            self.lower[n - 1:] = np.log(model.r0 / RADIUS_FACTOR)
-            self.upper[n - 1:] = np.log(model.r0 * RADIUS_FACTOR)
+            fittable = FITTABLE["radius"]
+            self.lower[n - 1:] = np.log(np.maximum(model.r0 / RADIUS_FACTOR, fittable.lower))
+            self.upper[n - 1:] = np.log(np.minimum(model.r0 * RADIUS_FACTOR, fittable.upper))
         self.evaluations = 0
 
     def _distinct(self, y: np.ndarray) -> int:
@@ -277,7 +280,8 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
         parts: ``(material, fraction, radius um)`` per population (two to four): the fractions
             are the start (by ``by``), the radii the fixed values (or the start, with
             ``free_radii``); population 1 (the first) must be present in the result.
-        free_radii: fit the radii too (within a factor :data:`RADIUS_FACTOR` of the start).
+        free_radii: fit the radii too (within a factor :data:`RADIUS_FACTOR` of the start
+            and within the fittable radii, 0.003-3 um; a start outside them is an error).
         by: how the start fractions are given (``mass`` or ``volume``).
         global_stage: the search (:data:`~mitsuba_powder.fitting.optimise.GLOBAL_STAGES`):
             ``sobol`` (``starts`` Sobol starts, ``parts`` the first, batched
@@ -293,12 +297,12 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     Raises:
         ValueError: fewer than two populations or more than four, arrays of different lengths,
             a non-positive or non-finite sigma, an albedo outside [0, 1], fewer wavelengths
-            than free variables, an unknown global stage, starts or max_evaluations < 1, or what
+            than free variables, an unknown global stage or one without nlopt installed, starts
+            or max_evaluations < 1, a seed outside [0, 2^32)
+            (:func:`~mitsuba_powder.fitting.optimise.check_search`), or what
             :func:`volume_fractions` and the grain optics refuse.
-        ImportError: ``mlsl`` or ``crs2`` without nlopt installed.
     """
-    check_global_stage(global_stage)
-    check_range("starts", starts, 1)
+    check_search(global_stage, starts, seed)
     wl = np.atleast_1d(np.asarray(wavelengths_nm, dtype=float))
     rho = np.atleast_1d(np.asarray(albedo, dtype=float))
     sig = np.atleast_1d(np.asarray(sigma, dtype=float))
@@ -308,9 +312,12 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     indices = [[complex(m) for m in GrainOptics({"material": mat}).index(wl)]
                for mat, _, _ in parts]
     r0 = np.array([float(r) for _, _, r in parts])
-    # variables: log amounts then, with free_radii, log radii
     if free_radii:
-        z0 = np.concatenate([z0, np.log(r0)])
+        for material, _, radius in parts:
+            check_range(f"the start radius of {material}", radius, FITTABLE["radius"].lower,
+                        FITTABLE["radius"].upper, "[]", unit="um",
+                        note="um (free radii: the radii fit frees)")
+        z0 = np.concatenate([z0, np.log(r0)])  # variables: log amounts, then log radii
     model = _Mixture(wl, indices, r0, free_radii)
     problem = _Residuals(model, rho, sig)
     search = _search(problem, z0, global_stage, starts, seed, max_evaluations)

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._checks import check_each
 from ..plugin import registry
 from . import mixing_rules as rules
 from .optimise import finite_difference_jacobian, multistart, sobol_starts
@@ -113,10 +114,9 @@ def _check_spectra(wl, reflectance, sigma, endmembers, parts) -> tuple:
                          f"{len(r)}, {len(sig)})")
     if not np.all(np.diff(wl) > 0):
         raise ValueError("the wavelengths must increase")
-    if not np.all(np.isfinite(sig) & (sig > 0)):
-        raise ValueError("sigma must be finite and > 0 at every wavelength")
-    if not np.all(np.isfinite(r)):
-        raise ValueError("the reflectance must be finite at every wavelength")
+    at = [f" at {w:g} nm" for w in wl]
+    check_each("sigma", sig, 0.0, math.inf, "()", at)
+    check_each("the reflectance", r, -math.inf, math.inf, "()", at)
     if not 2 <= len(parts) <= registry.MAX_POPULATIONS:
         raise ValueError(f"unmixing {len(parts)} populations; valid range is "
                          f"[2, {registry.MAX_POPULATIONS}]")
@@ -170,7 +170,8 @@ def _fit_rule(method: str, model, parts, by: str, r: np.ndarray, sig: np.ndarray
     a = np.exp(z)
     f, g = _fractions(a)
     ga = g * a[None, :]
-    cov_f = ga @ cov_z @ ga.T
+    with np.errstate(invalid="ignore"):  # a singular fit: inf * 0, reported by the callers
+        cov_f = ga @ cov_z @ ga.T
     absent = [m for m, v in zip(materials, f) if v < ABSENT]
     if absent:
         warnings.append(f"the fraction of {', '.join(absent)} is below {ABSENT:g}: the rule "
@@ -358,7 +359,7 @@ class PowderReflectance:
 
 
 def unmix_powder(wl, reflectance, sigma, parts, by: str = "volume", geometry="0:d",
-                 properties: dict | None = None) -> SpectrumUnmixing:
+                 properties: dict | None = None, seed: int = 0) -> SpectrumUnmixing:
     """The powder model's unmixing of a reflectance spectrum (module docstring): today's
     :func:`~mitsuba_powder.fitting.unmix.unmix` on the albedo the plugin inverts from the
     reflectance (its uncertainty ``sigma / (dR / d rho)``), then the fractions refined on the
@@ -370,13 +371,14 @@ def unmix_powder(wl, reflectance, sigma, parts, by: str = "volume", geometry="0:
             the materials' optical constants and the radii make the model).
         properties: the plugin's other properties (``tau_o`` required; e.g. ``energy``,
             ``extinction``, ``g``).
+        seed: of the Sobol scrambling of the albedo's unmixing.
     """
     from ..plugin.grains import mixture_albedo, mixture_properties
 
     wl, r, sig, _ = _check_spectra(wl, reflectance, sigma, None, parts)
     engine = PowderReflectance(wl, geometry, dict(properties or {}))
     albedo, slope, clipped = engine.albedo(r)
-    u = unmix(wl, albedo, sig / np.maximum(slope, 1e-6), parts, by=by)
+    u = unmix(wl, albedo, sig / np.maximum(slope, 1e-6), parts, by=by, seed=seed)
 
     def model(f: np.ndarray) -> np.ndarray:
         mix = [(m, float(v), x) for (m, _, x), v in zip(parts, f)]

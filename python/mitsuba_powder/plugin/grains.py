@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _optics
+from ..outputs import note_input
 from . import registry
 
 #: Grain models of the plugin's ``grains`` property (docs/model.md, "Grain models")
@@ -105,6 +106,7 @@ class GrainOptics:
         elif isinstance(material, str) and material.endswith((".yml", ".yaml")):
             if not Path(material).is_file():
                 raise ValueError(f"material = {material!r}: no such file")
+            note_input(material)  # an input of the command: nothing is written over it
             wl, n, k = _optics.load_optical_constants(material)
             self.source = material
         else:
