@@ -267,6 +267,16 @@ def _propagate(model: _Mixture, z: np.ndarray, cov_z: np.ndarray, n: int, free_r
     return f, f_err, cov_f, radii, r_err
 
 
+def _log_start_radii(parts: list[tuple[str, float, float]]) -> np.ndarray:
+    """The logarithms of the populations' start radii (um), each checked within the radii
+    ``fit`` frees."""
+    for material, _, radius in parts:
+        check_range(f"the start radius of {material}", radius, FITTABLE["radius"].lower,
+                    FITTABLE["radius"].upper, "[]", unit="um",
+                    note="um (free radii: the radii fit frees)")
+    return np.log([float(r) for _, _, r in parts])
+
+
 def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
           free_radii: bool = False, by: str = "volume", global_stage: str = "sobol",
           starts: int = DEFAULT_STARTS, seed: int = 0, max_evaluations: int | None = None
@@ -313,11 +323,7 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
                for mat, _, _ in parts]
     r0 = np.array([float(r) for _, _, r in parts])
     if free_radii:
-        for material, _, radius in parts:
-            check_range(f"the start radius of {material}", radius, FITTABLE["radius"].lower,
-                        FITTABLE["radius"].upper, "[]", unit="um",
-                        note="um (free radii: the radii fit frees)")
-        z0 = np.concatenate([z0, np.log(r0)])  # variables: log amounts, then log radii
+        z0 = np.concatenate([z0, _log_start_radii(parts)])  # log amounts, then log radii
     model = _Mixture(wl, indices, r0, free_radii)
     problem = _Residuals(model, rho, sig)
     search = _search(problem, z0, global_stage, starts, seed, max_evaluations)
