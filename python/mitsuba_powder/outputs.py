@@ -28,15 +28,16 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
+from typing import BinaryIO
 
 __all__ = ["INCOMPLETE", "MANIFEST", "STAGING", "OutputError", "check_complete",
            "check_finite_json", "check_output_folder", "final_path", "guarding_inputs",
            "note_input", "output_file", "output_names", "output_path", "protected_inputs",
-           "staged_output", "write_json", "write_whole"]
+           "replace_whole", "staged_output", "write_json", "write_whole"]
 
 _INPUTS: ContextVar[set[Path] | None] = ContextVar("mitsuba_powder_inputs", default=None)
 #: {resolved output folder: its staging folder} of the running command (:func:`staged_output`)
@@ -139,17 +140,24 @@ def write_whole(path: str | Path, data: str | bytes, what: str = "output") -> Pa
     Raises:
         OutputError: as :func:`output_file`.
     """
-    p = output_file(path, what)
-    part = p.with_name(f".{p.name}.{uuid.uuid4().hex[:8]}.part")
+    raw = data.encode("utf-8") if isinstance(data, str) else data
+    return replace_whole(output_file(path, what), lambda f: f.write(raw))
+
+
+def replace_whole(path: Path, write: Callable[[BinaryIO], object]) -> Path:
+    """``write(f)`` into a temporary file beside ``path`` (an output already checked), synced
+    and renamed over ``path``: the file is whole or as it was (the temporary file removed on
+    any failure)."""
+    part = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.part")
     try:
         with open(part, "wb") as f:
-            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(part, p)
+        os.replace(part, path)
     finally:
         part.unlink(missing_ok=True)
-    return p
+    return path
 
 
 def write_json(path: str | Path, obj, what: str = "output") -> Path:

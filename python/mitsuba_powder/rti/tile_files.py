@@ -6,15 +6,13 @@ written whole or not at all (:func:`write_atomic`), found again on resume
 from __future__ import annotations
 
 import json
-import os
-import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..outputs import output_path
+from ..outputs import output_path, replace_whole
 from .blocks import merge_fit_settings
 from .checks import check_count
 from .maps import _json_default
@@ -107,17 +105,8 @@ def tile_arrays(result: MapsResult | None, tile: Tile, settings_hash: str,
 def write_atomic(out: Path, name: str, arrays: Mapping[str, np.ndarray]) -> Path:
     """Write ``arrays`` to ``out/TILES_FOLDER/name`` (.npz) through a temporary file renamed
     into place: the file is whole or absent."""
-    final = output_path(out, f"{TILES_FOLDER}/{name}")
-    part = output_path(out, f"{TILES_FOLDER}/.{name}.{uuid.uuid4().hex[:8]}.part")
-    try:
-        with open(part, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(part, final)
-    finally:
-        part.unlink(missing_ok=True)
-    return final
+    return replace_whole(output_path(out, f"{TILES_FOLDER}/{name}"),
+                         lambda f: np.savez(f, **arrays))
 
 
 def read_meta(path: Path) -> dict | None:
