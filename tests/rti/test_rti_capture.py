@@ -306,7 +306,8 @@ def test_compare_scores_and_plugs_in_models(tmp_path):
     imgs = np.einsum("kn,nhwc->khwc", _ptm_reference(d), coef).astype(np.float32)
     mask = np.zeros((H, W), dtype=bool)
     mask[:, :16] = True
-    cap = Capture(imgs, d, [f"{i}.png" for i in range(K)], "linear", "png", 8, mask)
+    # values above 1: an EXR capture (an integer format would record at most 1)
+    cap = Capture(imgs, d, [f"{i}.exr" for i in range(K)], "linear", "exr", 32, mask)
 
     class Offset:  # a plug-in model: truth + 1/255 everywhere -> RMSE exactly 1 level
         n_parameters = 1
@@ -350,6 +351,28 @@ def test_compare_srgb_scale():
     assert row.rmse_8bit == pytest.approx(ref, rel=1e-5)
     assert row.rmse_linear_8bit == pytest.approx(255 * np.sqrt(np.mean((0.1 * truth) ** 2)),
                                                  rel=1e-5)
+
+
+@pytest.mark.parametrize("file_format", ["png", "jpeg", "exr"])
+def test_compare_scores_what_the_file_records(file_format):
+    """A prediction above the full scale is scored as the full scale in an integer format (a
+    camera records no more), as predicted in EXR."""
+    d = _directions()
+    imgs = np.full((K, H, W, 3), 0.5, dtype=np.float32)
+    cap = Capture(imgs, d, [f"{i}.{file_format}" for i in range(K)], "linear", file_format,
+                  8 if file_format != "exr" else 32)
+
+    def fit(images, directions, mask):
+        class Spike:  # the truth, and 40x the full scale at one pixel
+            def predict(self, dirs):
+                out = np.full((len(dirs), H, W, 3), 0.5)
+                out[:, 0, 0] = 40.0
+                return out
+        return Spike()
+
+    row = compare(cap, {"spike": fit}, protocols=("grazing",)).rows[0]
+    top = 1.0 if file_format != "exr" else 40.0
+    assert row.rmse_8bit == pytest.approx(255 * (top - 0.5) / np.sqrt(H * W), rel=1e-6)
 
 
 def test_cli_compare_maps(tmp_path, capsys):

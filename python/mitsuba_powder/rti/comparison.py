@@ -18,7 +18,10 @@ the error on the file's value scale (0-255 for 8-bit files; 16-bit files and EXR
 0-255 scale of full scale 1.0). With ``encoding="linear"`` (pixel / 255 taken as linear, as
 docs/rti.md's RealRTI scores) this is also the linear error; with ``srgb`` it is the error of the
 sRGB-encoded values, and ``rmse_linear_8bit`` (255 x the linear RMSE) is reported beside it.
-Predictions are scored as the model gives them (not clamped, except by the model itself:
+Predictions are scored as the file would record them: above the full scale (1.0) of an
+integer format (PNG, JPEG) a camera records the full scale, so a prediction above it is
+scored as 1.0 (:func:`recorded`; EXR files hold any value and are scored as predicted);
+otherwise as the model gives them (not clamped below, except by the model itself:
 ``lambertian_clamped``).
 
 A model is a callable ``fit(images, directions, mask) -> predictor`` (``images`` linear
@@ -49,7 +52,7 @@ from .lights import distance_to_json
 from .options import DEFAULTS
 
 __all__ = ["PROTOCOLS", "Comparison", "Row", "baseline_fitter", "compare", "held_out",
-           "write_comparison"]
+           "recorded", "write_comparison"]
 
 PROTOCOLS = ("interpolation", "grazing")
 
@@ -208,6 +211,7 @@ def _score(capture: Capture, name: str, fit: Fitter, protocol: str, idx: np.ndar
     if pred.shape != truth.shape:
         raise ValueError(f"model {name!r}: prediction of shape {pred.shape}, expected "
                          f"{truth.shape}")
+    pred = recorded(pred, capture.file_format)
     err = encode(pred, capture.encoding) - encode(truth, capture.encoding)  # (L, H, W, C)
     sq = err[:, sel] ** 2  # (L, P, C)
     rmse = 255.0 * float(np.sqrt(np.mean(sq)))
@@ -219,6 +223,13 @@ def _score(capture: Capture, name: str, fit: Fitter, protocol: str, idx: np.ndar
     return Row(name, protocol, idx.tolist(), int(len(keep)),
                None if npar is None else int(npar), rmse, rmse_lin, per_light,
                seconds, str(getattr(model, "note", "") or "")), emap
+
+
+def recorded(values: np.ndarray, file_format: str) -> np.ndarray:
+    """Linear ``values`` as a file of ``file_format`` records them: at most the full scale
+    (1.0) in an integer format (``png``, ``jpeg``: a camera saturates there), as they are in
+    ``exr``."""
+    return values if file_format == "exr" else np.minimum(values, 1.0)
 
 
 def _markdown(comp: Comparison) -> str:
@@ -237,8 +248,10 @@ def _markdown(comp: Comparison) -> str:
                              " image widths from the image's centre (per-pixel directions and"
                              " 1/d^2 irradiance)."),
         "",
-        f"Held-out RMSE in 8-bit levels (0-255) of the {scale}; predictions unclamped "
-        "(except lambertian_clamped's).",
+        f"Held-out RMSE in 8-bit levels (0-255) of the {scale}; predictions "
+        + ("unclamped" if c["file_format"] == "exr" else
+           "above the full scale scored at the full scale (what the file records), "
+           "unclamped below") + " (except lambertian_clamped's).",
         f"Protocols: interpolation holds out the lights k % 5 == {c['interpolation_phase']} "
         "(.lp order, from 0); grazing holds out the ceil(K/6) lights of smallest lz.",
     ]

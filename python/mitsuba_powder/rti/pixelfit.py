@@ -22,7 +22,7 @@ from .inputs import FitData, FitInputs
 from .lights import distance_to_json
 from .options import FitOptions
 from .problem import PixelProblem
-from .properties import SLOPE_LIMIT, SPECS
+from .properties import LOBE, NO_LOBE, SLOPE_LIMIT, SPECS
 from .result import MapsResult
 from .solvers import SOLVERS
 from .starts import PixelStarts
@@ -103,6 +103,48 @@ def fit_in_blocks(inputs: FitInputs, pixels: np.ndarray, options: FitOptions,
         result = part if result is None else merge_block(result, part)
     result.mask = pixels
     result.fit_settings["blocks"] = len(blocks)
+    return _drop_pinned_lobes(inputs, result, options, light_distance, log, at)
+
+
+#: A pixel's surface lobe is pinned when its amplitude ends within this fraction of the
+#: amplitude's upper bound
+PINNED = 1e-3
+
+
+def _drop_pinned_lobes(inputs: FitInputs, result: MapsResult, options: FitOptions,
+                       light_distance: float | np.ndarray, log: Log,
+                       start_pixels: np.ndarray) -> MapsResult:
+    """``result`` with the pixels whose surface lobe ends at the largest amplitude fitted
+    again without the lobe (``amplitude_surface`` 0), under the gains found: such a lobe is
+    not determined by the lights (a needle between them or on the pixels' brightest,
+    saturated and left out, observations), and it relights far beyond anything observed.
+    ``fit_settings["lobe_dropped_pixels"]`` counts them."""
+    if "amplitude_surface" not in options.free:
+        return result
+    amp = result.maps["amplitude_surface"]
+    upper = SPECS["amplitude_surface"].upper
+    pinned = result.mask & np.isfinite(amp) & (amp >= upper * (1.0 - PINNED))
+    n = int(pinned.sum())
+    result.fit_settings["lobe_dropped_pixels"] = n
+    if not n:
+        return result
+    log(f"surface lobe: {n} of {int(result.mask.sum())} pixels end at the largest amplitude "
+        f"({upper:g} um^2), which the lights do not determine: fitted again without the lobe")
+    plain = options.replace(free=tuple(f for f in options.free if f not in LOBE),
+                            gains=options.gains.held(result.gains))
+    part = fit_in_blocks(inputs, pinned, plain, np.asarray(result.gains), light_distance, log,
+                         start_pixels=start_pixels)
+    settings = dict(result.fit_settings)
+    mask = result.mask
+    result = merge_block(result, part)
+    for name in LOBE:
+        result.maps[name][pinned] = NO_LOBE[name]
+    result.mask = mask
+    settings["evaluations"] = int(settings.get("evaluations", 0)) + int(
+        part.fit_settings.get("evaluations", 0))
+    settings["underdetermined_pixels"] = int(np.count_nonzero(
+        ~np.isfinite(result.residual_rms[mask])))
+    result.fit_settings = settings
     return result
 
 

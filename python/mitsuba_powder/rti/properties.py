@@ -33,6 +33,13 @@ FREE_PROPERTIES = ("albedo",) + MAP_PROPERTIES + GRAIN_MAPS
 #: determines (:mod:`mitsuba_powder.rti.fit` gives the evidence)
 MAP_DEFAULT_FREE = ["albedo", "amplitude_surface", "correlation_length"]
 
+#: The surface lobe's properties (the free set's optional part)
+LOBE = ("amplitude_surface", "correlation_length")
+
+#: The values of the lobe's maps where it is dropped: no lobe (the plugin's default
+#: ``amplitude_surface``, 0) and the fit's start of the correlation length (no effect then)
+NO_LOBE = {"amplitude_surface": 0.0, "correlation_length": 0.4}
+
 #: Largest normal slope |n_x / n_z|, |n_y / n_z| (tilt up to 85 degrees along an axis)
 SLOPE_LIMIT = 11.4
 

@@ -41,7 +41,7 @@ from .forward import PixelEvaluator, slopes_of_normals
 from .inputs import FitData, FitInputs
 from .options import FitOptions
 from .pixelfit import Log, fit_pixels
-from .properties import MAP_DEFAULT_FREE
+from .properties import LOBE, MAP_DEFAULT_FREE
 from .relief import Relief
 
 __all__ = ["FOLDS", "MIN_SHADED", "SHADOW_Z", "TOLERANCE", "Z_CAP", "FreeChoice",
@@ -61,8 +61,6 @@ SHADOW_Z = 0.0
 MIN_SHADED = 10
 #: The largest |z| recorded (every shaded pixel gaining exactly the same has no spread)
 Z_CAP = 1000.0
-#: The surface lobe's properties, the candidates' optional part
-LOBE = ("amplitude_surface", "correlation_length")
 
 
 @dataclass
