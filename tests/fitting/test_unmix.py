@@ -6,6 +6,8 @@ miepython (tests/oracles/grains.py, independent of the plugin's Mie code), with 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -177,6 +179,49 @@ def test_fit_frees_the_fractions_of_a_three_material_powder(free_tau):
     assert not r.warnings, r.warnings
 
 
+_CRS2_FIT = """
+from mitsuba_powder.fitting.fit import fit
+from mitsuba_powder.fitting.protocols import simulate
+GONIO_TRUTH = TRUTH_DICT
+data = simulate(GONIO_TRUTH, "backscatter", wavelengths=WAVES, noise=0.01, seed=5)
+free = ["fraction2", "fraction3", "extinction"]
+fixed = {k: v for k, v in GONIO_TRUTH.items() if k not in free}
+r = fit(data, free=free, fixed=fixed, starts=4, global_stage="crs2")
+assert "nlopt crs2" in r.stages[0], r.stages
+for name in ("fraction2", "fraction3"):
+    assert abs(r.parameters[name] - GONIO_TRUTH[name]) < 0.02, r.parameters
+RENDER
+"""
+
+_SPECTRAL_RENDER = """
+import mitsuba as mi
+mi.set_variant("llvm_ad_spectral")
+import mitsuba_powder
+scene = mi.load_dict({"type": "scene", "integrator": {"type": "path"},
+    "emitter": {"type": "constant"}, "shape": {"type": "rectangle", "bsdf": {
+        "type": "powder", "albedo": 0.8}},
+    "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4, "height": 4}}})
+mi.render(scene, spp=4)
+"""
+
+
+def _crs2_fit(then: str) -> str:
+    """A script: the CRS2 fit of the SYNTHETIC three-material gonio data, checked, then
+    ``then``."""
+    waves = tuple(float(w) for w in WAVELENGTHS[::5])
+    return (_CRS2_FIT.replace("TRUTH_DICT", repr(GONIO_TRUTH)).replace("WAVES", repr(waves))
+            .replace("RENDER", then))
+
+
+@pytest.mark.xfail(strict=True, reason="known bug (2026-12-03): after a CRS2 fit a spectral "
+                   "render in the same process stops with 'jit_var_call(): size of output "
+                   "variable ... is 198 (must be 1)'; found by the full suite's order")
+def test_a_spectral_render_after_a_crs2_fit():
+    out = subprocess.run([sys.executable, "-c", _crs2_fit(_SPECTRAL_RENDER)],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+
+
 def test_fit_takes_the_nlopt_stage_and_refuses_an_unknown_one():
     """fit(global_stage=...) through the same optimiser: CRS2 over the free variables, then
     Levenberg-Marquardt and the polish, recovers the fractions; an unknown stage is an error
@@ -184,14 +229,15 @@ def test_fit_takes_the_nlopt_stage_and_refuses_an_unknown_one():
     from mitsuba_powder.fitting.fit import fit
     from mitsuba_powder.fitting.protocols import simulate
 
+    # in a process of its own: a CRS2 fit leaves the process in a state where a later
+    # spectral render fails (test_a_spectral_render_after_a_crs2_fit, a known bug)
+    out = subprocess.run([sys.executable, "-c", _crs2_fit("")],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
     data = simulate(GONIO_TRUTH, "backscatter", wavelengths=tuple(WAVELENGTHS[::5]),
                     noise=0.01, seed=5)
     free = ["fraction2", "fraction3", "extinction"]
     fixed = {k: v for k, v in GONIO_TRUTH.items() if k not in free}
-    r = fit(data, free=free, fixed=fixed, starts=4, global_stage="crs2")
-    assert "nlopt crs2" in r.stages[0]
-    for name in ("fraction2", "fraction3"):
-        assert abs(r.parameters[name] - GONIO_TRUTH[name]) < 0.02, r.parameters
     with pytest.raises(ValueError, match=r"global_stage = 'de' is not a global stage; valid "
                                          r"values are sobol, mlsl, crs2"):
         fit(data, free=free, fixed=fixed, global_stage="de")
