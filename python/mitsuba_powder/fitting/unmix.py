@@ -277,6 +277,14 @@ def _log_start_radii(parts: list[tuple[str, float, float]]) -> np.ndarray:
     return np.log([float(r) for _, _, r in parts])
 
 
+def _search_warnings(search) -> list[str]:
+    """A warning when fewer than two of the global stage's searches reached the best chi2."""
+    if len(search.start_costs) > 1 and search.agreeing < 2:
+        return [f"only {search.agreeing} of {len(search.start_costs)} searches reached the best "
+                "chi2 (within 1 %): it may not be the global optimum; try more starts"]
+    return []
+
+
 def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
           free_radii: bool = False, by: str = "volume", global_stage: str = "sobol",
           starts: int = DEFAULT_STARTS, seed: int = 0, max_evaluations: int | None = None
@@ -334,11 +342,7 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     cov_z = _covariance(jac / sig[:, None], warnings)
     f, f_err, cov_f, radii, r_err = _propagate(model, z, cov_z, n, free_radii)
     materials = [m for m, _, _ in parts]
-    warnings += _undetermined(materials, f, f_err, cov_z, free_radii)
-    if len(search.start_costs) > 1 and search.agreeing < 2:
-        warnings.append(f"only {search.agreeing} of {len(search.start_costs)} searches reached "
-                        f"the best chi2 (within 1 %): it may not be the global optimum; try "
-                        "more starts")
+    warnings += _undetermined(materials, f, f_err, cov_z, free_radii) + _search_warnings(search)
     return UnmixResult(materials, f, f_err, _mass_fractions(materials, f), radii, r_err,
                        float(res @ res), len(wl) - len(z), values, warnings,
                        problem.evaluations, search.seconds, global_stage, cov_f)
