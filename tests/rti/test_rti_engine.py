@@ -312,3 +312,4 @@ def test_cli_fit_maps_records_solver_memory_and_gain_pixels(tmp_path):
     assert fit["solver"] == "numpy" and fit["memory_gb"] == 0.5
     assert fit["gain_pixels"] == 64 and fit["gains"] == "fit" and fit["blocks"] == 1
     assert fit["peak_memory_mib"] > 0
+    assert fit["full_scale"] is None   # EXR records any value: nothing clipped

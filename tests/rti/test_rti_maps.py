@@ -121,6 +121,7 @@ def test_cli_fit_maps_then_relight(capture_dir, tmp_path, capsys):
     assert info["capture"] == {"encoding": "linear", "bit_depth": 16, "file_format": "png",
                                "lp": str(capture_dir / "capture.lp")}
     assert len(info["gains"]) == 24 and info["lights"][0] == "light00.png"
+    assert info["fit"]["full_scale"] == 1.0   # PNG: held-out predictions scored as recorded
     assert (out / "scene.xml").is_file() and (out / "normal.exr").is_file()
     # relight under the capture's own lights: same names, format and bit depth, and close
     # to the (noisy) capture

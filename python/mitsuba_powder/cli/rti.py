@@ -153,7 +153,7 @@ def _cmd_fit_maps(args: argparse.Namespace) -> int:
     options = _fit_options(args, free=_names(args.free), fixed=_fixed_properties(args.set))
     size = _pixel_size(args)
     capture = _load(args)
-    options = _lp_distance(args, capture, options, size)
+    options = _lp_distance(args, capture, options.replace(full_scale=capture.full_scale), size)
     capture, options, cal = _reference(args, capture, options)
     result = run_fit(capture.images, capture.directions, options, capture.mask, print)
     _keep_relief(result, options)
@@ -302,7 +302,8 @@ def _cmd_compare_maps(args: argparse.Namespace) -> int:
     render = {"spp": _number(args.spp), "variant": args.render_variant}
     size = _pixel_size(args)
     capture = _load(args)
-    capture, options, cal = _reference(args, capture, options)
+    capture, options, cal = _reference(args, capture,
+                                       options.replace(full_scale=capture.full_scale))
     distance = _compare_distance(args, capture, options, size)
     near = np.any(np.isfinite(distance))
     field = args.field or ("both" if near else "far")

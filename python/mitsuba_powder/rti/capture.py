@@ -58,8 +58,8 @@ from ..readers import read_bitmap
 from ..variants import use_variant
 
 __all__ = ["Capture", "ENCODINGS", "LpFile", "MIN_LZ_DEFAULT", "decode", "encode",
-           "load_capture", "lp_image_paths", "read_image", "read_image_window", "read_lp",
-           "read_lp_file", "read_mask", "write_images", "write_lp"]
+           "full_scale", "load_capture", "lp_image_paths", "read_image", "read_image_window",
+           "read_lp", "read_lp_file", "read_mask", "write_images", "write_lp"]
 
 #: the transfer functions between file values and linear values
 ENCODINGS = ("srgb", "linear")
@@ -105,6 +105,17 @@ class Capture:
     def channels(self) -> int:
         """Channels per pixel (1 or 3)."""
         return int(self.images.shape[3])
+
+    @property
+    def full_scale(self) -> float:
+        """The largest linear value its files record (:func:`full_scale`)."""
+        return full_scale(self.file_format)
+
+
+def full_scale(file_format: str) -> float:
+    """The largest linear value a file of ``file_format`` records: 1.0 in an integer format
+    (``png``, ``jpeg``: the full scale, where a camera saturates), ``inf`` in ``exr``."""
+    return math.inf if file_format == "exr" else 1.0
 
 
 def _check_encoding(encoding: str) -> None:

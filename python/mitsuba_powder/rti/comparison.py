@@ -45,7 +45,7 @@ import numpy as np
 
 from ..outputs import output_path
 from .baselines import BASELINES, fit_baseline
-from .capture import Capture, encode
+from .capture import Capture, encode, full_scale
 from .checks import check_directions
 from .inputs import check_lights, check_signal
 from .lights import distance_to_json
@@ -229,7 +229,8 @@ def recorded(values: np.ndarray, file_format: str) -> np.ndarray:
     """Linear ``values`` as a file of ``file_format`` records them: at most the full scale
     (1.0) in an integer format (``png``, ``jpeg``: a camera saturates there), as they are in
     ``exr``."""
-    return values if file_format == "exr" else np.minimum(values, 1.0)
+    scale = full_scale(file_format)
+    return values if math.isinf(scale) else np.minimum(values, scale)
 
 
 def _markdown(comp: Comparison) -> str:

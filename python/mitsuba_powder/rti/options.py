@@ -43,6 +43,7 @@ DEFAULTS: dict[str, object] = {
     "max_iterations": 30, "rounds": 3, "saturation": 0.99, "shadow_ratio": 0.5,
     "shadow_floor": 0.03, "solver": "drjit", "variant": VARIANT, "max_lanes": MAX_LANES,
     "memory_gb": None, "exposure": None, "shadows": "auto", "light_size": 0.5,
+    "full_scale": math.inf,
 }
 
 #: What :attr:`FitOptions.shadows` may be
@@ -103,6 +104,12 @@ class FitOptions:
             no relief in the fit.
         light_size: the lights' angular radius, degrees in [0, 45]: the soft edge of cast
             shadows (visibility 0.5 where the horizon cuts the light's centre).
+        full_scale: the largest linear value the capture's files record, > 0: 1 for PNG and
+            JPEG, ``inf`` (the default) for EXR and arrays
+            (:attr:`~mitsuba_powder.rti.capture.Capture.full_scale`; the command line sets it
+            from the files). The cross-validations (free set, exposure, shadows) score the
+            held-out predictions as such a file records them: at most ``full_scale``, as
+            ``compare-maps`` scores them.
         names: how messages name the options (e.g. ``{"memory_gb": "--memory-gb"}``).
         given: the options as the caller gave them (before defaults), for the records.
     """
@@ -123,6 +130,7 @@ class FitOptions:
     exposure: float | str | None = None
     shadows: str = "auto"
     light_size: float = 0.5
+    full_scale: float = math.inf
     names: dict = field(default_factory=dict)
     given: dict = field(default_factory=dict)
 
@@ -188,7 +196,8 @@ def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
             ``shadow_ratio``, ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``,
             ``memory_gb`` (None: :func:`~mitsuba_powder.rti.blocks.default_memory_gb`),
             ``exposure`` (a number > 0, ``"fit"`` or None),
-            ``shadows`` (``auto``, ``relief`` or ``ratio``), ``light_size`` (degrees).
+            ``shadows`` (``auto``, ``relief`` or ``ratio``), ``light_size`` (degrees),
+            ``full_scale`` (the largest value the files record, > 0; ``inf``: EXR).
 
     Raises:
         ValueError: an unknown option or a value out of its range (named as ``names`` says).
@@ -230,6 +239,7 @@ def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
         exposure=check_exposure(o["exposure"], name("exposure")), shadows=o["shadows"],
         light_size=check_range(name("light_size"), o["light_size"], 0.0, 45.0, "[]",
                                unit="degrees"),
+        full_scale=check_range(name("full_scale"), o["full_scale"], 0.0, math.inf, "(]"),
         names=names, given=given)
 
 

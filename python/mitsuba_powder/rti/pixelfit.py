@@ -27,8 +27,8 @@ from .result import MapsResult
 from .solvers import SOLVERS
 from .starts import PixelStarts
 
-__all__ = ["CHI2_STEP", "Log", "fit_in_blocks", "fit_pixels", "max_correlation_length",
-           "stop_tolerance"]
+__all__ = ["CHI2_STEP", "PINNED", "Log", "fit_in_blocks", "fit_pixels", "max_correlation_length",
+           "pinned_lobes", "stop_tolerance", "without_lobe"]
 
 #: The stopping rule of the per-pixel Levenberg-Marquardt: a pixel stops when a step changes
 #: its chi-square (its cost over the residual variance, estimated by the cost over its
@@ -111,6 +111,22 @@ def fit_in_blocks(inputs: FitInputs, pixels: np.ndarray, options: FitOptions,
 PINNED = 1e-3
 
 
+def pinned_lobes(amplitude: np.ndarray) -> np.ndarray:
+    """Where a fitted ``amplitude_surface`` map ends at its upper bound (within
+    :data:`PINNED`): bool, the shape of ``amplitude`` (False where it is not finite)."""
+    amp = np.asarray(amplitude)
+    upper = SPECS["amplitude_surface"].upper
+    return np.isfinite(amp) & (amp >= upper * (1.0 - PINNED))
+
+
+def without_lobe(options: FitOptions) -> FitOptions | None:
+    """``options`` with the surface lobe held off (:data:`~mitsuba_powder.rti.properties.LOBE`
+    not free: ``amplitude_surface`` at the plugin's default 0); None when it is not free."""
+    if "amplitude_surface" not in options.free:
+        return None
+    return options.replace(free=tuple(f for f in options.free if f not in LOBE))
+
+
 def _drop_pinned_lobes(inputs: FitInputs, result: MapsResult, options: FitOptions,
                        light_distance: float | np.ndarray, log: Log,
                        start_pixels: np.ndarray) -> MapsResult:
@@ -119,19 +135,18 @@ def _drop_pinned_lobes(inputs: FitInputs, result: MapsResult, options: FitOption
     not determined by the lights (a needle between them or on the pixels' brightest,
     saturated and left out, observations), and it relights far beyond anything observed.
     ``fit_settings["lobe_dropped_pixels"]`` counts them."""
-    if "amplitude_surface" not in options.free:
+    plain = without_lobe(options)
+    if plain is None:
         return result
-    amp = result.maps["amplitude_surface"]
+    pinned = result.mask & pinned_lobes(result.maps["amplitude_surface"])
     upper = SPECS["amplitude_surface"].upper
-    pinned = result.mask & np.isfinite(amp) & (amp >= upper * (1.0 - PINNED))
     n = int(pinned.sum())
     result.fit_settings["lobe_dropped_pixels"] = n
     if not n:
         return result
     log(f"surface lobe: {n} of {int(result.mask.sum())} pixels end at the largest amplitude "
         f"({upper:g} um^2), which the lights do not determine: fitted again without the lobe")
-    plain = options.replace(free=tuple(f for f in options.free if f not in LOBE),
-                            gains=options.gains.held(result.gains))
+    plain = plain.replace(gains=options.gains.held(result.gains))
     part = fit_in_blocks(inputs, pinned, plain, np.asarray(result.gains), light_distance, log,
                          start_pixels=start_pixels)
     settings = dict(result.fit_settings)
@@ -385,7 +400,9 @@ def _fit_settings(data: FitData, state: _State, specs: Mapping[str, ParamSpec], 
     return {
         "free": list(o.free), "gains": o.gains.mode, "max_iterations": o.max_iterations,
         "rounds": o.rounds, "saturation": o.saturation, "shadow_ratio": o.shadow_ratio,
-        "shadow_floor": o.shadow_floor, "max_lanes": o.lanes, "chunks": len(state.chunks),
+        "shadow_floor": o.shadow_floor,
+        "full_scale": None if math.isinf(o.full_scale) else o.full_scale,
+        "max_lanes": o.lanes, "chunks": len(state.chunks),
         "solver": o.solver, "correlation_length_max_um": specs["correlation_length"].upper,
         "iterations_last_round": state.iterations, "evaluations": state.evaluations,
         "pixels_at_cap_last_round": state.at_cap, "rounds_at_cap": state.capped_rounds,

@@ -40,7 +40,7 @@ import numpy as np
 from .forward import PixelEvaluator, slopes_of_normals
 from .inputs import FitData, FitInputs
 from .options import FitOptions
-from .pixelfit import Log, fit_pixels
+from .pixelfit import Log, fit_pixels, pinned_lobes, without_lobe
 from .properties import LOBE, MAP_DEFAULT_FREE
 from .relief import Relief
 
@@ -126,7 +126,10 @@ def held_out_squares(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
     folds; a fold whose prediction at the pixel is not finite left out), their count, and
     whether every fold's prediction was finite. With a ``relief``, the pixels are fitted under
     its visibility (:meth:`FitInputs.pixels`) and the held-out lights relit shaded by it, as
-    :meth:`~mitsuba_powder.rti.result.MapsResult.predict` does."""
+    :meth:`~mitsuba_powder.rti.result.MapsResult.predict` does. The predictions are scored
+    as the capture's files record them (at most ``options.full_scale``). A pixel whose surface lobe
+    ends pinned at its bound in a fold is predicted by that fold's fit without the lobe, as
+    the maps would have it (:func:`_pinned_without_lobe`)."""
     k = len(inputs.d)
     medians = {n: float(np.median(m[sub])) for n, m in inputs.maps.items()}
     data = inputs.pixels(sub, gains, light_distance, options)
@@ -144,8 +147,11 @@ def held_out_squares(inputs: FitInputs, sub: np.ndarray, options: FitOptions,
             continue
         part = fit_pixels(ev, _lights(fitted, ~held), Log(), medians)
         pred = _predict(ev, part, data, held)
+        pred = _pinned_without_lobe(inputs, sub, part, pred, options, gains, light_distance,
+                                    relief, held, medians)
         if vis is not None:
             pred = pred * vis[:, held, None]
+        pred = np.minimum(pred, options.full_scale)   # as the capture's files record it
         wt = ~np.any(data.obs[:, held] >= options.saturation, axis=2)     # (P, K_held)
         r = (pred - data.obs[:, held]) * wt[:, :, None]
         good = np.isfinite(r).all(axis=(1, 2))
@@ -212,6 +218,30 @@ def paired_z(diff: np.ndarray) -> float:
     se = float(np.std(diff, ddof=1)) / np.sqrt(diff.size) if diff.size > 1 else 0.0
     mean = float(np.mean(diff))
     return mean / se if se > 0 else float(np.sign(mean) * np.inf)
+
+
+def _pinned_without_lobe(inputs: FitInputs, sub: np.ndarray, part, pred: np.ndarray,
+                         options: FitOptions, gains: np.ndarray, light_distance,
+                         relief: Relief | None, held: np.ndarray, medians: dict
+                         ) -> np.ndarray:
+    """``pred`` (a fold's held-out predictions of the pixels ``sub``, fitted in ``part``) with
+    the pixels whose surface lobe is pinned at its bound predicted by a fit of the fold
+    without the lobe: what the maps do with such pixels (``fit_in_blocks`` fits them again
+    without it), so that a cross-validation scores the fit the maps will be."""
+    plain = without_lobe(options)
+    if plain is None:
+        return pred
+    pinned = sub & pinned_lobes(part.maps["amplitude_surface"])
+    if not pinned.any():
+        return pred
+    data = inputs.pixels(pinned, gains, light_distance, plain)
+    fitted = data if relief is None else replace(inputs, relief=relief).pixels(
+        pinned, gains, light_distance, plain)
+    ev = PixelEvaluator(plain.others + list(data.fixed_maps), plain.settings, plain.variant)
+    refit = fit_pixels(ev, _lights(fitted, ~held), Log(), medians)
+    out = np.array(pred, copy=True)
+    out[np.flatnonzero(pinned[sub])] = _predict(ev, refit, data, held)
+    return out
 
 
 def _lights(data: FitData, keep: np.ndarray) -> FitData:
