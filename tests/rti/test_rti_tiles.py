@@ -96,9 +96,11 @@ def test_tiled_fit_equals_the_untiled_fit_under_the_same_gains(capture_lp, clien
     assert reference.fit_settings["tiles"]["fitted"] == 9
     assert not np.allclose(gains, 1.0)
     capture = rti.load_capture(capture_lp, encoding="linear")
-    untiled = rti.fit_maps(capture.images, capture.directions, gains="fixed",
-                           initial_gains=gains, free=rti.MAP_DEFAULT_FREE, **OPTIONS)
     tiled = _tiled(capture_lp, tmp_path, client, gains="fixed", initial_gains=gains)
+    # the free set chosen on the subsample (the gains held there) holds in every tile
+    assert list(tiled.free) == tiled.fit_settings["free_choice"]["chosen"]
+    untiled = rti.fit_maps(capture.images, capture.directions, gains="fixed",
+                           initial_gains=gains, free=tiled.free, **OPTIONS)
     assert tiled.maps.keys() == untiled.maps.keys() and tiled.free == untiled.free
     for name, value in _fields(untiled).items():
         np.testing.assert_allclose(_fields(tiled)[name], value, rtol=0, atol=1e-4,
@@ -125,6 +127,7 @@ def test_interrupted_run_resumes_the_missing_tiles_only(capture_lp, client, refe
     tiles = resumed.fit_settings["tiles"]
     assert (tiles["fitted"], tiles["resumed"]) == (6, 3)
     _assert_identical(resumed, reference)
+    assert resumed.fit_settings["free_choice"] == reference.fit_settings["free_choice"]
     again = _tiled(capture_lp, tmp_path, client, resume=True)
     assert again.fit_settings["tiles"]["fitted"] == 0
     _assert_identical(again, reference)
@@ -146,6 +149,22 @@ def test_a_killed_worker_loses_at_most_its_tile(capture_lp, client, reference, t
     assert killed and result.fit_settings["tiles"]["fitted"] == 9
     _assert_identical(result, reference)
     client.wait_for_workers(2, timeout=60)  # the nanny restarts the worker
+
+
+def test_the_free_set_is_chosen_once_on_the_gains_subsample(capture_lp, client, reference,
+                                                          tmp_path):
+    """Not given, the free set is chosen by the untiled fit's cross-validation on the gains'
+    subsample (recorded and printed), and every tile fits it; given, nothing is chosen."""
+    choice = reference.fit_settings["free_choice"]
+    assert choice["chosen"] == list(reference.free)
+    assert [c["free"] for c in choice["candidates"]] == [
+        ["albedo"], ["albedo", "amplitude_surface", "correlation_length"]]
+    assert all(c["cv_rms"] > 0 for c in choice["candidates"])
+    assert choice["pixels"] <= GAIN_PIXELS
+    lines: list[str] = []
+    given = _tiled(capture_lp, tmp_path, client, free=["albedo"], log=lines.append)
+    assert given.free == ["albedo"] and given.fit_settings.get("free_choice") is None
+    assert not any(line.startswith("free set") for line in lines)
 
 
 def test_resume_refuses_tiles_of_other_settings(capture_lp, client, reference, tmp_path):

@@ -246,7 +246,7 @@ def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
     from ..rti.maps import maps_files, write_maps
     from ..rti.tiles import fit_maps_tiled
 
-    free = _names(args.free) or MAP_DEFAULT_FREE
+    free = _names(args.free)   # None: chosen on the gains' subsample
     fixed = _fixed_properties(args.set)
     options = _fit_options(args, tiled=True, free=free, fixed=fixed)
     _check_tiled(args)
@@ -254,7 +254,8 @@ def _cmd_fit_maps_tiled(args: argparse.Namespace) -> int:
     note_inputs(lp_image_paths(args.capture, names))
     if args.mask is not None:
         note_input(args.mask)
-    for name in maps_files([n for n in free if n != "albedo"] + list(fixed), relief=False):
+    for name in maps_files([n for n in free or MAP_DEFAULT_FREE if n != "albedo"]
+                           + list(fixed), relief=False):
         output_path(args.out, name, mkdir=False)  # a refused output fails before the fit
     result = fit_maps_tiled(
         args.capture, args.out, _number(args.tile_size), encoding=args.encoding,

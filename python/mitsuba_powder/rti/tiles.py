@@ -16,8 +16,10 @@ tiles); every tile is then fitted with these gains held
 ``initial_gains`` (default 1) are held and no subsample is fitted. A pixel's fit depends only
 on its own observations once the gains are held, so a tiled fit equals an untiled one under
 the same gains. **The exposure** (not given) is scanned on that subsample likewise
-(:mod:`mitsuba_powder.rti.exposure`), even with the gains held, and held in every tile; the
-free set is the default one unless given (tiles do not choose it by cross-validation). Each
+(:mod:`mitsuba_powder.rti.exposure`), even with the gains held, and held in every tile.
+**The free set** (not given) is chosen on that subsample too, by the cross-validation an
+untiled fit runs (:mod:`mitsuba_powder.rti.selection`), and every tile fits the set chosen
+(one choice per capture, none per tile). Each
 worker runs the fit's plan (:func:`mitsuba_powder.rti.plan.run_fit`) with
 the tiled fit's own :class:`~mitsuba_powder.rti.options.FitOptions`.
 
@@ -52,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from ..outputs import note_inputs, output_path
-from .capture import Capture, lp_image_paths, read_image_window, read_lp, read_mask
+from .capture import Capture, full_scale, lp_image_paths, read_image_window, read_lp, read_mask
 from .checks import check_gains
 from .cluster import open_client, worker_threads
 from .gains import GAIN_PIXELS
@@ -165,8 +167,6 @@ def _plan(capture, encoding: str, mask, options: FitOptions) -> _Plan:
             raise FileNotFoundError(f"{lp}: image {name!r} not found (looked for {path})")
     initial = options.gains.initial
     initial = None if initial is None else check_gains(initial, len(names))
-    # every tile fits the same free set: the default one unless given (no per-tile choice)
-    options = options.replace(given={**options.given, "free": list(options.free)})
     return _Plan(lp, paths, list(names), directions, encoding, mask, options, initial)
 
 
@@ -245,7 +245,8 @@ def _fit_gains(surveys: list[dict], directions: np.ndarray, options: FitOptions)
     images = np.stack([s["samples"] for s in surveys])[:, None]  # (K, 1, N, 3)
     result = run_fit(images, directions, options)
     return {"gains": result.gains, "stages": result.fit_settings.get("stages", []),
-            "exposure": result.fit_settings.get("exposure")}
+            "exposure": result.fit_settings.get("exposure"), "free": list(result.free),
+            "free_choice": result.fit_settings.get("free_choice")}
 
 
 def _fit_tile(paths: list[str], encoding: str, tile: Tile, shape: tuple[int, int],
@@ -285,16 +286,19 @@ def _mask(plan: _Plan, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np.ndarray,
-                key: str, resume: bool, log: Callable[[str], None]) -> np.ndarray:
+                key: str, resume: bool, log: Callable[[str], None]
+                ) -> tuple[np.ndarray, dict | None, dict | None]:
     """The gains every tile holds: ``initial_gains`` (mode ``fixed``, the exposure given),
     or those fitted (or the exposure scanned: :mod:`mitsuba_powder.rti.exposure`) on the gain
-    policy's subsample of the masked pixels (read back from ``gains.npz`` on resume), and
-    the exposure's record (None: not fitted)."""
+    policy's subsample of the masked pixels, where the free set (not given) is chosen too
+    (read back from ``gains.npz`` on resume); the exposure's record (None: not fitted) and
+    the free choice's (None: the free set given)."""
     policy = plan.options.gains
-    if not policy.fitted and not plan.options.fits_exposure:
-        exposure = 1.0 if plan.options.exposure is None else float(plan.options.exposure)
+    o = plan.options
+    if not policy.fitted and not o.fits_exposure and not o.chooses_free:
+        exposure = 1.0 if o.exposure is None else float(o.exposure)
         gains = np.ones(len(plan.paths)) if plan.initial_gains is None else plan.initial_gains
-        return exposure * gains, None
+        return exposure * gains, None, None
     path = out / TILES_FOLDER / GAINS_FILE
     if resume and path.exists():
         meta = read_meta(path)
@@ -304,7 +308,7 @@ def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np
             with np.load(path, allow_pickle=False) as f:
                 gains = np.array(f["gains"])
             log(f"gains: read from {path}")
-            return gains, meta.get("exposure")
+            return gains, meta.get("exposure"), meta.get("free_choice")
     flat = policy.draw(mask)
     options = plan.options.replace(fixed=_sampled_fixed(plan.options.fixed, shape, flat),
                                    gains=policy.on_subsample() if policy.fitted else policy)
@@ -312,15 +316,17 @@ def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np
     _check_surveys(client.gather(surveys), plan.names, plan.lp)
     fitted = client.submit(_fit_gains, surveys, plan.directions, options, pure=False).result()
     meta = {"kind": KIND, "settings_hash": key, "pixels": len(flat), "seed": policy.seed,
-            "stages": fitted["stages"], "exposure": fitted["exposure"]}
+            "stages": fitted["stages"], "exposure": fitted["exposure"],
+            "free_choice": fitted["free_choice"]}
     write_atomic(out, GAINS_FILE, {"meta": meta_array(meta), "gains": fitted["gains"]})
     for line in fitted["stages"]:
-        if line.startswith("exposure"):
+        if line.startswith(("exposure", "free set")):
             log(line)
-    log(f"gains: {'fitted' if policy.fitted else 'the exposure scanned'} on {len(flat)} "
-        "pixels of the whole capture, held in every tile (range "
-        f"{np.min(fitted['gains']):.4g}-{np.max(fitted['gains']):.4g})")
-    return np.asarray(fitted["gains"]), fitted["exposure"]
+    what = "fitted" if policy.fitted else "the exposure scanned" if o.fits_exposure else \
+        "held, the free set chosen"
+    log(f"gains: {what} on {len(flat)} pixels of the whole capture, held in every tile "
+        f"(range {np.min(fitted['gains']):.4g}-{np.max(fitted['gains']):.4g})")
+    return np.asarray(fitted["gains"]), fitted["exposure"], fitted["free_choice"]
 
 
 def _run_tiles(client, plan: _Plan, out: Path, todo: list[Tile], shape: tuple[int, int],
@@ -451,9 +457,14 @@ def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: b
     log(f"{plan.lp}: {len(plan.paths)} lights, {shape[1]} x {shape[0]} px, "
         f"{first['format']} {first['depth']} bit, encoding {plan.encoding}")
     fit_mask = _mask(plan, shape)
+    plan.options = plan.options.replace(full_scale=full_scale(first["format"]))
     key = _hash(plan.settings_key(fit_mask))
-    held, exposure = _held_gains(client, plan, out, shape, fit_mask, key, resume, log)
-    settings_hash = _hash({"gains_key": key, "held": held, "tile_size": size})
+    held, exposure, choice = _held_gains(client, plan, out, shape, fit_mask, key, resume, log)
+    # every tile fits the same free set: the one chosen on the subsample, or given
+    free = list(plan.options.free) if choice is None else list(choice["chosen"])
+    plan.options = plan.options.replace(free=tuple(free),
+                                        given={**plan.options.given, "free": free})
+    settings_hash = _hash({"gains_key": key, "held": held, "tile_size": size, "free": free})
     tiles = tiles_of(shape, size)
     todo = tiles_to_fit(out, tiles, fit_mask, settings_hash, len(plan.paths), resume)
     log(f"tiles: {len(tiles)} of up to {size} x {size} px, {len(todo)} to fit, "
@@ -465,6 +476,7 @@ def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: b
     policy = plan.options.gains
     return tiles, shape, held, {
         "gains": policy.mode, "exposure": exposure,
+        **({} if choice is None else {"free_choice": choice}),
         "tiles": {"tile_size": size, "count": len(tiles), "fitted": fitted,
                   "resumed": len(tiles) - len(todo), "gain_pixels": policy.subsample,
                   "gains": policy.mode, "settings_hash": settings_hash, "out": str(out)},
