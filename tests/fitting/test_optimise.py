@@ -265,3 +265,33 @@ def test_an_error_of_the_model_reaches_the_caller_as_it_is(method):
     for seed in range(3):
         with pytest.raises(ValueError, match="a1 outside the model's domain"):
             nlopt_search(OutsideItsDomain(), method, 300, seed=seed)
+
+
+def _nothing_holds_the_problem_after(method: str, problem_type: type) -> bool:
+    """Whether ``problem_type()``, searched by ``method`` (and its error, if any, caught and
+    dropped), is collected once nlopt_search is done with it."""
+    import gc
+    import weakref
+
+    problem = problem_type()
+    alive = weakref.ref(problem)
+    try:
+        nlopt_search(problem, method, 300, seed=0)
+    except ValueError:
+        pass
+    del problem
+    gc.collect()
+    return alive() is None
+
+
+@pytest.mark.parametrize("method", ["mlsl", "crs2"])
+def test_an_nlopt_stage_keeps_nothing_of_its_problem(method):
+    """After nlopt_search, normally or by the model's error, nothing holds the problem. The
+    objective held nlopt's optimiser (its force_stop), which holds the objective by a
+    reference the garbage collector cannot see: the problem lived as long as the process, and
+    a fit's plugin instances in it broke every later spectral render
+    (test_unmix.py::test_a_spectral_render_after_a_crs2_fit)."""
+    with pytest.raises(ValueError, match="a1 outside"):
+        nlopt_search(OutsideItsDomain(), method, 300, seed=0)  # (the error path is taken)
+    assert _nothing_holds_the_problem_after(method, TwoExponentials)
+    assert _nothing_holds_the_problem_after(method, OutsideItsDomain)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -474,6 +475,27 @@ def _nlopt_optimiser(nlopt, method: str, p: int, problem: BatchProblem):
     return opt
 
 
+def _stopper(opt) -> Callable[[], None]:
+    """``opt.force_stop`` through a weak reference to ``opt``.
+
+    nlopt's optimiser holds its objective by a reference that Python's garbage collector
+    cannot see (a C++ object of the SWIG wrapper), so an objective that holds the optimiser
+    (e.g. its bound ``force_stop``) makes a cycle that is never collected: the objective, its
+    problem and whatever the problem holds lived as long as the process. For the fit that was
+    its :class:`~mitsuba_powder.plugin.brf.BatchBRF` engines, powder plugin instances whose
+    parameters have one value per lane (e.g. 198), and Dr.Jit traces every live instance of
+    the variant in a render's BSDF call: every later render in that variant failed
+    ("jit_var_call(): size of output variable ... is 198 (must be 1)")."""
+    optimiser = weakref.ref(opt)
+
+    def stop() -> None:
+        alive = optimiser()
+        if alive is not None:
+            alive.force_stop()
+
+    return stop
+
+
 def _recording_objective(problem: BatchProblem, points: list[np.ndarray], costs: list[float],
                          failed: list[BaseException], stop: Callable[[], None]
                          ) -> Callable[[np.ndarray, np.ndarray], float]:
@@ -482,7 +504,8 @@ def _recording_objective(problem: BatchProblem, points: list[np.ndarray], costs:
     ``costs``; a non-finite cost (outside the model's domain) is 1e300, never a NaN. An error
     of the problem is not raised through nlopt (its CRS2 goes on evaluating with the error
     pending, and Python then fails with a SystemError): it is kept in ``failed``, nlopt is
-    stopped (``stop``) and the cost is 1e300 until it returns; :func:`nlopt_search` raises it."""
+    stopped (``stop``) and the cost is 1e300 until it returns; :func:`nlopt_search` raises it.
+    ``stop`` must not hold the optimiser (:func:`_stopper`)."""
     def objective(y: np.ndarray, grad: np.ndarray) -> float:
         if failed:
             return 1e300
@@ -535,7 +558,7 @@ def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed:
     costs: list[float] = []
     failed: list[BaseException] = []
     opt = _nlopt_optimiser(nlopt, method, len(problem.lower), problem)
-    opt.set_min_objective(_recording_objective(problem, points, costs, failed, opt.force_stop))
+    opt.set_min_objective(_recording_objective(problem, points, costs, failed, _stopper(opt)))
     opt.set_maxeval(int(max_evaluations))
     nlopt.srand(int(seed))
     y0 = (problem.lower + problem.upper) / 2.0 if start is None else np.asarray(start, float)
@@ -547,7 +570,9 @@ def nlopt_search(problem: BatchProblem, method: str, max_evaluations: int, seed:
         # the points so far stand, the LM steps and the polish follow
         stopped = f" (nlopt stopped early: {type(error).__name__} {error})"
     if failed:
-        raise failed[0]
+        # out of the objective's list first: the error's traceback holds the optimiser, which
+        # holds the objective (_stopper), so left in the list it would never be collected
+        raise failed.pop()
     if not points:
         raise RuntimeError(f"the global stage {method} (nlopt) stopped before evaluating a "
                            f"point{stopped}; try --global sobol")
