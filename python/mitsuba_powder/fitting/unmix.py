@@ -337,8 +337,7 @@ def unmix(wavelengths_nm, albedo, sigma, parts: list[tuple[str, float, float]],
     search = _search(problem, z0, global_stage, starts, seed, max_evaluations)
     z = search.y
     values, jac = model(z)
-    res = (values - rho) / sig
-    warnings: list[str] = []
+    res, warnings = (values - rho) / sig, []
     cov_z = _covariance(jac / sig[:, None], warnings)
     f, f_err, cov_f, radii, r_err = _propagate(model, z, cov_z, n, free_radii)
     materials = [m for m, _, _ in parts]
