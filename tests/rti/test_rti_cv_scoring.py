@@ -96,3 +96,58 @@ def test_pinned_lobes_rule():
     upper = SPECS["amplitude_surface"].upper
     amp = np.array([[upper, upper * (1 - 0.5 * PINNED)], [upper * 0.99, np.nan]])
     np.testing.assert_array_equal(pinned_lobes(amp), [[True, True], [False, False]])
+
+
+def _pattern_squares(capture, monkeypatch, free, pinned, sub, **given):
+    """held_out_squares of ``free`` on the pixels ``sub``, the lobe pinned at ``pinned``
+    (bool (H, W); by the rule's stand-in)."""
+    monkeypatch.setattr(selection, "pinned_lobes",
+                        lambda amp: np.asarray(pinned & np.isfinite(amp)))
+    options = fit_options(rounds=1, shadows="ratio", free=free,
+                          **{"exposure": 1.52, **given})
+    inputs = check_inputs(capture["images"], capture["directions"], options)
+    gains = np.full(len(capture["directions"]), 1.52)
+    return held_out_squares(inputs, sub, options, gains, math.inf)
+
+
+def test_pinned_pixels_are_scored_in_their_own_rows(capture, monkeypatch):
+    """Some pixels pinned, of a subsample that is not the whole image: each pinned pixel's
+    squares are those of the fit without the lobe, each other's those of its own lobe fit,
+    row by row (a row order that did not follow the subsample's C order would mix them)."""
+    rr, cc = np.mgrid[:8, :8]
+    sub = (rr + 2 * cc) % 3 != 1
+    pinned = (7 * rr + 3 * cc) % 5 == 0
+    part, n, _ = _pattern_squares(capture, monkeypatch, LOBE_FREE, pinned, sub)
+    none, n0, _ = _pattern_squares(capture, monkeypatch, LOBE_FREE, np.zeros_like(sub), sub)
+    plain, n1, _ = _pattern_squares(capture, monkeypatch, ["albedo"], pinned, sub)
+    rows = pinned[sub]
+    assert 0 < rows.sum() < rows.size
+    np.testing.assert_allclose(part[rows], plain[rows], rtol=1e-6)
+    np.testing.assert_allclose(part[~rows], none[~rows], rtol=1e-6)
+    assert np.all(plain[rows] > 2 * none[rows])   # the two differ: the test can tell them apart
+    np.testing.assert_array_equal(n, n1)
+
+
+def test_pinned_pixels_are_refitted_under_the_folds_gains(capture, monkeypatch):
+    """With the gains fitted, a fold's pinned pixels are fitted again without the lobe under
+    the gains that fold found (held), as the maps' refit holds the fit's: not fitted anew on
+    the few pinned pixels alone."""
+    calls = []
+    fit = selection.fit_pixels
+
+    def recording(ev, data, log, medians=None):
+        result = fit(ev, data, log, medians)
+        calls.append((tuple(data.options.free), data.options.gains.mode,
+                      np.array(data.gains), np.array(result.gains)))
+        return result
+
+    monkeypatch.setattr(selection, "fit_pixels", recording)
+    rr, cc = np.mgrid[:8, :8]
+    _pattern_squares(capture, monkeypatch, LOBE_FREE, (7 * rr + 3 * cc) % 5 == 0,
+                     np.ones((8, 8), bool), gains="fit", exposure=None, initial_gains=None)
+    folds = [(a, b) for a, b in zip(calls, calls[1:]) if a[0] == tuple(LOBE_FREE)]
+    assert len(folds) == selection.FOLDS
+    for lobe, refit in folds:
+        assert lobe[1] == "fit" and refit[0] == ("albedo",) and refit[1] == "fixed"
+        np.testing.assert_array_equal(refit[2], lobe[3])   # the fold's gains, held
+        np.testing.assert_array_equal(refit[3], lobe[3])

@@ -227,13 +227,18 @@ def _pinned_without_lobe(inputs: FitInputs, sub: np.ndarray, part, pred: np.ndar
     """``pred`` (a fold's held-out predictions of the pixels ``sub``, fitted in ``part``) with
     the pixels whose surface lobe is pinned at its bound predicted by a fit of the fold
     without the lobe: what the maps do with such pixels (``fit_in_blocks`` fits them again
-    without it), so that a cross-validation scores the fit the maps will be."""
+    without it, under the gains found: fitted gains are held at the fold's), so that a
+    cross-validation scores the fit the maps will be."""
     plain = without_lobe(options)
     if plain is None:
         return pred
     pinned = sub & pinned_lobes(part.maps["amplitude_surface"])
     if not pinned.any():
         return pred
+    if options.gains.fitted:  # the fold's gains of the lights it saw, held (not refitted
+        gains = np.array(gains, dtype=np.float64)  # on the few pinned pixels alone)
+        gains[~held] = part.gains
+        plain = plain.replace(gains=options.gains.held(gains))
     data = inputs.pixels(pinned, gains, light_distance, plain)
     fitted = data if relief is None else replace(inputs, relief=relief).pixels(
         pinned, gains, light_distance, plain)
