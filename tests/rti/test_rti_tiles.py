@@ -167,6 +167,16 @@ def test_the_free_set_is_chosen_once_on_the_gains_subsample(capture_lp, client, 
     assert not any(line.startswith("free set") for line in lines)
 
 
+def test_the_full_scale_is_the_files_unless_given(capture_lp, client, tmp_path):
+    """The cross-validations' full scale is the files' (EXR: none) unless the caller gives
+    one, which is kept (not replaced by the files')."""
+    args = {"gains": "fixed", "exposure": 1.0, "free": ["albedo"]}
+    files = _tiled(capture_lp, tmp_path / "files", client, **args)
+    assert files.fit_settings["full_scale"] is None
+    given = _tiled(capture_lp, tmp_path / "given", client, full_scale=0.5, **args)
+    assert given.fit_settings["full_scale"] == 0.5
+
+
 def test_resume_refuses_tiles_of_other_settings(capture_lp, client, reference, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(reference_dir(reference), out)

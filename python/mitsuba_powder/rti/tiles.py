@@ -391,7 +391,8 @@ def fit_maps_tiled(capture: str | Path | Capture, out_dir: str | Path, tile_size
         **fit: the options of :func:`fit_maps` (``free``, ``fixed``, ``gains``: ``fit``
             fitted on ``gain_subsample`` pixels of the whole capture then held, or ``fixed``,
             ``initial_gains``, ``seed``, ``max_iterations``, ``rounds``, ...; distant lights
-            only); per-pixel ``fixed`` maps are (H, W) (or (H, W, 3)) as there.
+            only); per-pixel ``fixed`` maps are (H, W) (or (H, W, 3)) as there;
+            ``full_scale`` (default: the files', 1 for PNG and JPEG, ``inf`` for EXR).
 
     Returns:
         The :class:`~mitsuba_powder.rti.result.MapsResult` of the whole capture;
@@ -457,7 +458,8 @@ def _fit_on(client, plan: _Plan, out: Path, size: int, resume: bool, progress: b
     log(f"{plan.lp}: {len(plan.paths)} lights, {shape[1]} x {shape[0]} px, "
         f"{first['format']} {first['depth']} bit, encoding {plan.encoding}")
     fit_mask = _mask(plan, shape)
-    plan.options = plan.options.replace(full_scale=full_scale(first["format"]))
+    if "full_scale" not in plan.options.given:  # the files' full scale, unless given
+        plan.options = plan.options.replace(full_scale=full_scale(first["format"]))
     key = _hash(plan.settings_key(fit_mask))
     held, exposure, choice = _held_gains(client, plan, out, shape, fit_mask, key, resume, log)
     # every tile fits the same free set: the one chosen on the subsample, or given
