@@ -120,7 +120,9 @@ def fit_maps(images: np.ndarray, directions: np.ndarray, free: Sequence[str] | N
             ``shadow_floor``, ``solver``, ``variant``, ``max_lanes``, ``memory_gb``,
             ``shadows`` (``auto``, default: the relief's cast shadows where
             cross-validation over held-out lights keeps them; ``relief``; ``ratio``),
-            ``light_size``.
+            ``light_size``, ``full_scale`` (the largest value the capture's files record,
+            which the cross-validations clip held-out predictions at: default ``inf``, as
+            EXR; give ``capture.full_scale``, 1, for a PNG or JPEG capture).
 
     Returns:
         A :class:`~mitsuba_powder.rti.result.MapsResult`.
