@@ -135,7 +135,17 @@ def test_cli_fit_maps_then_relight(capture_dir, tmp_path, capsys):
     assert rms < 0.02, rms
 
 
-def test_cli_compare_maps_with_the_powder_model(capture_dir, tmp_path):
+def test_cli_compare_maps_with_the_powder_model(capture_dir, tmp_path, monkeypatch):
+    from mitsuba_powder.rti import relief_rows
+
+    scales = []
+    fit = relief_rows.run_fit
+
+    def recording(images, directions, options, *args, **kwargs):
+        scales.append(options.full_scale)
+        return fit(images, directions, options, *args, **kwargs)
+
+    monkeypatch.setattr(relief_rows, "run_fit", recording)
     out = tmp_path / "compare"
     assert main(["compare-maps", str(capture_dir / "capture.lp"), "--out", str(out),
                  "--encoding", "linear", "--models", "lambertian,powder",
@@ -143,6 +153,8 @@ def test_cli_compare_maps_with_the_powder_model(capture_dir, tmp_path):
     data = json.loads((out / "compare.json").read_text())
     text = json.dumps(data)
     assert "powder" in text and "lambertian" in text
+    # the powder rows' cross-validations score as the PNG files record (as the table does)
+    assert scales and all(s == 1.0 for s in scales), scales
 
 
 def test_cli_fit_maps_errors(tmp_path, capsys):
