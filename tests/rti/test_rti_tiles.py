@@ -182,6 +182,9 @@ def test_resume_refuses_tiles_of_other_settings(capture_lp, client, reference, t
     shutil.copytree(reference_dir(reference), out)
     with pytest.raises(ValueError, match="gains.npz was written with other settings"):
         _tiled(capture_lp, out, client, resume=True, max_iterations=7)
+    # the free set given where it was chosen: the gains (fitted with the choice) are refused
+    with pytest.raises(ValueError, match="gains.npz was written with other settings"):
+        _tiled(capture_lp, out, client, resume=True, free=list(reference.free))
     # the same gains, another tile size: the first tile file is refused
     with pytest.raises(ValueError, match="tile_r0000_c0000.npz was written with other"):
         fit_maps_tiled(capture_lp, out, 24, encoding="linear", gain_subsample=GAIN_PIXELS,
