@@ -322,10 +322,14 @@ def _held_gains(client, plan: _Plan, out: Path, shape: tuple[int, int], mask: np
     for line in fitted["stages"]:
         if line.startswith(("exposure", "free set")):
             log(line)
-    what = "fitted" if policy.fitted else "the exposure scanned" if o.fits_exposure else \
-        "held, the free set chosen"
-    log(f"gains: {what} on {len(flat)} pixels of the whole capture, held in every tile "
-        f"(range {np.min(fitted['gains']):.4g}-{np.max(fitted['gains']):.4g})")
+    span = f"range {np.min(fitted['gains']):.4g}-{np.max(fitted['gains']):.4g}"
+    if policy.fitted or o.fits_exposure:
+        what = "fitted" if policy.fitted else "the exposure scanned"
+        log(f"gains: {what} on {len(flat)} pixels of the whole capture, held in every tile "
+            f"({span})")
+    else:
+        log(f"gains: held as given in every tile ({span}); the free set chosen on "
+            f"{len(flat)} pixels of the whole capture")
     return np.asarray(fitted["gains"]), fitted["exposure"], fitted["free_choice"]
 
 
