@@ -20,6 +20,7 @@ from mitsuba_powder import rti
 from mitsuba_powder.cli import main
 from mitsuba_powder.rti.cluster import check_scheduler, check_workers, open_client
 from mitsuba_powder.rti.maps import read_maps
+from mitsuba_powder.rti.tile_files import read_meta
 from mitsuba_powder.rti.tiles import TILES_FOLDER, check_tile_size, fit_maps_tiled, plan_tiles
 
 distributed = pytest.importorskip("distributed")
@@ -99,6 +100,9 @@ def test_tiled_fit_equals_the_untiled_fit_under_the_same_gains(capture_lp, clien
     tiled = _tiled(capture_lp, tmp_path, client, gains="fixed", initial_gains=gains)
     # the free set chosen on the subsample (the gains held there) holds in every tile
     assert list(tiled.free) == tiled.fit_settings["free_choice"]["chosen"]
+    # with the gains held the subsample only chooses: no maps fitted there
+    stages = read_meta(tmp_path / TILES_FOLDER / "gains.npz")["stages"]
+    assert stages and all(line.startswith("free set") for line in stages), stages
     untiled = rti.fit_maps(capture.images, capture.directions, gains="fixed",
                            initial_gains=gains, free=tiled.free, **OPTIONS)
     assert tiled.maps.keys() == untiled.maps.keys() and tiled.free == untiled.free

@@ -59,7 +59,8 @@ from .checks import check_gains
 from .cluster import open_client, worker_threads
 from .gains import GAIN_PIXELS
 from .options import FitOptions, fit_options
-from .plan import run_fit
+from .pixelfit import Log
+from .plan import make_plan, run_fit, run_stages
 from .result import MapsResult
 from .tile_files import (
     GAINS_FILE,
@@ -82,6 +83,8 @@ from .tile_files import (
 __all__ = ["GAIN_PIXELS", "TILE_SIZE_MIN", "TILES_FOLDER", "Tile", "check_tile_size",
            "fit_maps_tiled", "plan_tiles"]
 
+#: The stages of the subsample's fit where its gains are held: what the tiles take from it
+_CHOICES = ("exposure scan", "free choice", "exposure check")
 #: The options of the gain policy (kept apart from the others in the settings' hash)
 _POLICY = ("gains", "initial_gains", "gain_subsample", "seed")
 
@@ -240,13 +243,23 @@ def _window_fixed(fixed: Mapping | None, shape: tuple[int, int], tile: Tile) -> 
 
 def _fit_gains(surveys: list[dict], directions: np.ndarray, options: FitOptions) -> dict:
     """The gains fitted on the sampled pixels (a worker task; ``options``: the subsample's,
-    :meth:`~mitsuba_powder.rti.gains.GainPolicy.on_subsample`): ``gains`` (K,), ``stages``."""
+    :meth:`~mitsuba_powder.rti.gains.GainPolicy.on_subsample`), or held (the exposure scanned
+    and the free set chosen on them, no maps fitted): ``gains`` (K,), ``stages``,
+    ``exposure``, ``free`` and ``free_choice``."""
     _prepare_worker(options.variant)
     images = np.stack([s["samples"] for s in surveys])[:, None]  # (K, 1, N, 3)
-    result = run_fit(images, directions, options)
-    return {"gains": result.gains, "stages": result.fit_settings.get("stages", []),
-            "exposure": result.fit_settings.get("exposure"), "free": list(result.free),
-            "free_choice": result.fit_settings.get("free_choice")}
+    if options.gains.fitted:
+        result = run_fit(images, directions, options)
+        return {"gains": result.gains, "stages": result.fit_settings.get("stages", []),
+                "exposure": result.fit_settings.get("exposure"), "free": list(result.free),
+                "free_choice": result.fit_settings.get("free_choice")}
+    # the gains held: only the stages before the maps (the exposure, the free set); the
+    # subsample's maps would be fitted for nothing
+    log = Log()
+    state = run_stages(make_plan(images, directions, options), log, _CHOICES)
+    return {"gains": np.asarray(state.gains), "stages": log.stages,
+            "exposure": state.exposure, "free": list(state.options.free),
+            "free_choice": state.free_choice}
 
 
 def _fit_tile(paths: list[str], encoding: str, tile: Tile, shape: tuple[int, int],
