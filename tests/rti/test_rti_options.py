@@ -15,6 +15,7 @@ import mitsuba_powder.rti as rf
 from helpers import write_exr_capture
 from mitsuba_powder.cli import main
 from mitsuba_powder.rti.gains import GainTrend
+from mitsuba_powder.rti.options import fit_options
 
 SIZE, LIGHTS = 8, 10
 
@@ -76,9 +77,12 @@ CASES = {
                    "free = ['albedo', 'albedo'] names a property twice", None),
     "set_range": (["--set", "g=1.5"], lambda c: _fit(c, fixed={"g": 1.5}),
                   "g[0, 0] = 1.5 is out of range; valid range is (-1, 1)", None),
-    "set_free": (["--set", "amplitude_surface=1e-4"],
-                 lambda c: _fit(c, fixed={"amplitude_surface": 1e-4}),
-                 "property 'amplitude_surface' is both free and fixed", None),
+    "set_free": (["--free", "albedo,amplitude_surface", "--set", "amplitude_surface=1e-4"],
+                 lambda c: _fit(c, free=["albedo", "amplitude_surface"],
+                                fixed={"amplitude_surface": 1e-4}),
+                 "property 'amplitude_surface' is both free and fixed (free = ['albedo', "
+                 "'amplitude_surface'] names it and it is held at 0.0001); leave it out of "
+                 "free to hold it", None),
     "set_energy": (["--set", "energy=conserving"],
                    lambda c: _fit(c, fixed={"energy": "conserving"}),
                    "energy = 'conserving': per-pixel maps need energy = 'paper' (the only "
@@ -148,6 +152,17 @@ def test_an_old_option_name_warns_and_messages_name_it(capture):
     with pytest.warns(DeprecationWarning, match="GainOptions is renamed GainTrend"):
         from mitsuba_powder.rti.gains import GainOptions
     assert GainOptions is GainTrend
+
+
+def test_the_default_free_set_leaves_out_what_is_held():
+    """Not given, the free set is the default less the held properties (``--set
+    amplitude_surface=...`` holds the lobe's amplitude: it is not also free); given, a
+    property both free and held is an error (CASES["set_free"])."""
+    o = fit_options(fixed={"amplitude_surface": 1e-4})
+    assert o.free == ("albedo", "correlation_length") and o.chooses_free
+    assert fit_options().free == tuple(rf.MAP_DEFAULT_FREE)
+    held = fit_options(fixed={"albedo": (0.5, 0.5, 0.5)})
+    assert held.free == ("amplitude_surface", "correlation_length") and not held.chooses_free
 
 
 def test_unknown_options_are_named(capture):

@@ -62,7 +62,9 @@ class FitOptions:
         free: properties fitted per pixel besides the normal: ``albedo`` (3 channels), a grain
             size of :data:`~mitsuba_powder.rti.properties.GRAIN_MAPS` instead of the albedo,
             and any of :data:`~mitsuba_powder.rti.properties.MAP_PROPERTIES`; at most 10
-            numbers per pixel (normal 2 + albedo 3 + 5 more).
+            numbers per pixel (normal 2 + albedo 3 + 5 more). Not given: the default set
+            (:data:`~mitsuba_powder.rti.properties.MAP_DEFAULT_FREE`) less the properties
+            held in ``fixed``, chosen by cross-validation.
         fixed: plugin properties held: numbers or (H, W) maps of
             :data:`~mitsuba_powder.rti.properties.MAP_PROPERTIES` (not free), ``albedo`` as
             (3,) or (H, W, 3) when not free, and settings (``lobes``, ``specular``,
@@ -214,9 +216,11 @@ def fit_options(names: Mapping[str, str] | None = None, **given) -> FitOptions:
         return names.get(option, option)
 
     variant = check_rgb_variant(o["variant"])
-    free = check_free(o["free"], name("free"))
     fixed = dict(o["fixed"] or {})
-    _check_held_names(free, fixed)
+    free = check_free(o["free"], name("free"))
+    if o["free"] is None:   # the default set, less what the caller holds
+        free = [n for n in free if n not in fixed]
+    _check_held_names(free, fixed, name("free"))
     policy = gain_policy(o["gains"], o["initial_gains"], o["gain_trend"], o["gain_subsample"],
                          o["seed"], name)
     if o["solver"] not in SOLVERS:
@@ -284,12 +288,16 @@ def check_free(free: Sequence[str] | None, name: str = "free") -> list[str]:
     return free
 
 
-def _check_held_names(free: Sequence[str], fixed: Mapping) -> None:
+def _check_held_names(free: Sequence[str], fixed: Mapping, name: str = "free") -> None:
     """The free and held properties together: none both free and held, a free grain size that
     is the grain model's, the albedo from the grains or free or held (exactly one)."""
     for prop in free:
         if prop in fixed:
-            raise ValueError(f"property {prop!r} is both free and fixed")
+            value = fixed[prop]
+            held = repr(value) if np.ndim(value) == 0 else f"a {np.shape(value)} map"
+            raise ValueError(f"property {prop!r} is both free and fixed ({name} = {list(free)} "
+                             f"names it and it is held at {held}); leave it out of {name} to "
+                             "hold it")
     grain_name = grain_map_name(fixed)
     wrong = [n for n in GRAIN_MAPS if n in free and n != grain_name]
     if wrong:
