@@ -172,10 +172,12 @@ def print_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> None:
         print("  ".join(cells))
 
 
-def random_pairs(n: int, variant: str, seed: int = 0):
+def random_pairs(n: int, variant: str, seed: int = 0, sorted_wavelengths: bool = False):
     """``n`` random direction pairs on the upper hemisphere (cosines in [0.1, 1]) as
     ``(si, wo)`` of the current Mitsuba variant; in spectral variants each lane gets four
-    random wavelengths in 360-830 nm."""
+    random wavelengths in 360-830 nm. ``sorted_wavelengths``: the same wavelengths, each
+    channel's sorted across the lanes (the same values and the same work per lane; neighbouring
+    lanes then read neighbouring records of a per-wavelength table)."""
     import mitsuba as mi
 
     rng = np.random.default_rng(seed)
@@ -185,6 +187,8 @@ def random_pairs(n: int, variant: str, seed: int = 0):
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.wi = mi.Vector3f(s[0] * np.cos(phi[0]), s[0] * np.sin(phi[0]), mu[0])
     if "spectral" in variant:
-        si.wavelengths = mi.UnpolarizedSpectrum(*rng.uniform(360, 830, (4, n)))
+        lam = rng.uniform(360, 830, (4, n))
+        si.wavelengths = mi.UnpolarizedSpectrum(*(np.sort(lam, axis=1) if sorted_wavelengths
+                                                  else lam))
     wo = mi.Vector3f(s[1] * np.cos(phi[1]), s[1] * np.sin(phi[1]), mu[1])
     return si, wo

@@ -20,9 +20,12 @@ random direction pairs (random wavelengths in spectral variants), every configur
 turn within each of 9 repeats; a cost is the median of the per-repeat ratios to `principled`.
 Times are wall times, or with ``--cpu-time`` the processor time of one Dr.Jit thread
 (``cpu_seconds``: on cores shared with other processes, the time they hold the cores is not
-counted).
+counted). With ``--sorted-wavelengths`` each channel's wavelengths are sorted across the lanes:
+the same values and the same instructions, but neighbouring lanes read neighbouring records of
+the 1 nm tables, which separates what random table reads cost the memory system from what the
+kernel computes (docs/benchmarks.md, "The spectral eval with a Mie albedo").
 
-    python benchmarks/bench_eval_breakdown.py [--quick] [--cpu-time]
+    python benchmarks/bench_eval_breakdown.py [--quick] [--cpu-time] [--sorted-wavelengths]
 """
 
 from __future__ import annotations
@@ -80,10 +83,11 @@ def volume_path(bsdf) -> str:
                  if "volume constants" in line), "")
 
 
-def measure(variant: str, n: int, repeat: int, clock=wall_seconds) -> list[dict]:
+def measure(variant: str, n: int, repeat: int, clock=wall_seconds,
+            sorted_wavelengths: bool = False) -> list[dict]:
     """Eval time of every configuration and of principled over the same lanes."""
     use_variant(variant)
-    si, wo = random_pairs(n, variant, seed=4)
+    si, wo = random_pairs(n, variant, seed=4, sorted_wavelengths=sorted_wavelengths)
     ctx = mi.BSDFContext()
     bsdfs = {label: mi.load_dict(props(lobes, extra)) for label, lobes, extra in CONFIGS}
     if variant.endswith("rgb"):
@@ -105,18 +109,22 @@ def main() -> None:
     ap = arg_parser(__doc__)
     ap.add_argument("--cpu-time", action="store_true",
                     help="processor time of one Dr.Jit thread instead of wall time")
+    ap.add_argument("--sorted-wavelengths", action="store_true",
+                    help="each channel's wavelengths sorted across the lanes (spectral)")
     args = ap.parse_args()
     n, repeat = (1 << 12, 2) if args.quick else (1 << 21, 9)
     if args.cpu_time:
         dr.set_thread_count(1)
     rows = []
     for variant in ("llvm_ad_rgb", "llvm_ad_spectral"):
-        rows += measure(variant, n, repeat, cpu_seconds if args.cpu_time else wall_seconds)
+        rows += measure(variant, n, repeat, cpu_seconds if args.cpu_time else wall_seconds,
+                        args.sorted_wavelengths)
     print_table(rows, [("variant", "variant", "s"), ("configuration", "configuration", "s"),
                        ("volume", "volume constants", "s"), ("ms", "eval ms", ".2f"),
                        ("cost_vs_principled", "cost / principled", ".2f")])
     save(args.out, "eval_breakdown", rows, args.quick, pairs=n, repeats=repeat,
-         clock="processor time, one thread" if args.cpu_time else "wall")
+         clock="processor time, one thread" if args.cpu_time else "wall",
+         wavelengths="sorted across the lanes" if args.sorted_wavelengths else "random")
     spectral = [r for r in rows if r["variant"] == "llvm_ad_spectral"]
     barh_figure(args.out / "eval_breakdown.png", [r["configuration"] for r in spectral],
                 [r["cost_vs_principled"] for r in spectral], "tab:orange",
