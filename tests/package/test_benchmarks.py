@@ -152,3 +152,21 @@ def test_run_all_lists_every_script():
     helpers = {"_common.py", "python_powder.py", "registry.py", "report.py", "run_all.py"}
     scripts = {p.name for p in BENCHMARKS_DIR.glob("*.py")} - helpers
     assert scripts == set(mod.SCRIPTS) == set(SCRIPTS)
+
+
+def test_sorted_wavelengths_keep_the_lanes_values():
+    """random_pairs' sorted_wavelengths (bench_eval_breakdown --sorted-wavelengths) changes
+    only the order of each channel's wavelengths across the lanes: the same values per
+    channel, sorted, and the same directions, so the kernel does the same work."""
+    import numpy as np
+
+    common = _load_script("_common")
+    common.use_variant("llvm_ad_spectral")
+    si, wo = common.random_pairs(1000, "llvm_ad_spectral", seed=3)
+    si_s, wo_s = common.random_pairs(1000, "llvm_ad_spectral", seed=3, sorted_wavelengths=True)
+    lam, lam_s = np.array(si.wavelengths), np.array(si_s.wavelengths)
+    assert lam.shape == lam_s.shape == (4, 1000)
+    assert np.all(np.diff(lam_s, axis=1) >= 0) and not np.all(np.diff(lam, axis=1) >= 0)
+    np.testing.assert_array_equal(np.sort(lam, axis=1), lam_s)
+    np.testing.assert_array_equal(np.array(si.wi), np.array(si_s.wi))
+    np.testing.assert_array_equal(np.array(wo), np.array(wo_s))
